@@ -1,0 +1,161 @@
+//! Frame intervals: the time spans between consecutive frames, from REAL frame timestamps.
+//!
+//! Webcams jitter and drop frames and the DAVIS346 fixture runs at 25 Hz, so nothing here
+//! assumes a frame rate unless the user asks for fixed intervals explicitly.
+
+use crate::error::{Error, Result};
+
+/// A half-open time span `[start, end)` in microseconds, with `end > start`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct Interval {
+    start: i64,
+    end: i64,
+}
+
+impl Interval {
+    /// Creates `[start, end)`; fails unless `end > start`.
+    pub fn new(start: i64, end: i64) -> Result<Self> {
+        if end > start {
+            Ok(Interval { start, end })
+        } else {
+            Err(Error::invalid(
+                "interval",
+                format!("end {end} us is not after start {start} us"),
+            ))
+        }
+    }
+
+    /// First microsecond of the interval.
+    pub fn start(&self) -> i64 {
+        self.start
+    }
+
+    /// First microsecond after the interval.
+    pub fn end(&self) -> i64 {
+        self.end
+    }
+
+    /// Length in microseconds (always at least 1).
+    pub fn duration_us(&self) -> i64 {
+        self.end - self.start
+    }
+
+    /// Whether `t` lies in `[start, end)`.
+    pub fn contains(&self, t: i64) -> bool {
+        t >= self.start && t < self.end
+    }
+
+    /// Converts an offset from `start` in microseconds (any float) to a timestamp inside the
+    /// interval: rounded to the nearest microsecond and clamped to `[start, end - 1]`.
+    /// A non-finite offset maps to `start`.
+    pub fn timestamp_at(&self, offset_us: f64) -> i64 {
+        let last = (self.end - self.start - 1) as f64;
+        let off = if offset_us.is_finite() {
+            offset_us.round().clamp(0.0, last)
+        } else {
+            0.0
+        };
+        self.start + off as i64
+    }
+}
+
+/// The intervals between consecutive frame times.
+///
+/// Frame times must be strictly increasing; a repeated or backwards time is an error (it would
+/// give an empty or negative interval), reported with its index.
+pub fn intervals_from_frames(frame_times: &[i64]) -> Result<Vec<Interval>> {
+    frame_times
+        .windows(2)
+        .enumerate()
+        .map(|(i, w)| {
+            Interval::new(w[0], w[1]).map_err(|_| {
+                Error::invalid(
+                    "frame times",
+                    format!(
+                        "frame {} at {} us does not come after frame {} at {} us",
+                        i + 1,
+                        w[1],
+                        i,
+                        w[0]
+                    ),
+                )
+            })
+        })
+        .collect()
+}
+
+/// Fixed-rate intervals covering `[first, last]` at `fps` frames per second.
+///
+/// Boundaries sit at `first + round(i * 1e6 / fps)` microseconds, so a rate like 29.97 does not
+/// accumulate rounding drift. The last interval is the one that contains `last`.
+pub fn fixed_intervals(first: i64, last: i64, fps: f64) -> Result<Vec<Interval>> {
+    if !(fps.is_finite() && fps > 0.0 && fps <= 1e6) {
+        return Err(Error::invalid(
+            "fps",
+            format!("{fps} is not a rate in (0, 1e6] frames per second"),
+        ));
+    }
+    if last < first {
+        return Ok(Vec::new());
+    }
+    let period = 1e6 / fps;
+    let boundary = |i: u64| first + (i as f64 * period).round() as i64;
+    let mut out = Vec::new();
+    let mut i = 0u64;
+    loop {
+        let (a, b) = (boundary(i), boundary(i + 1));
+        out.push(Interval::new(a, b.max(a + 1))?);
+        if b > last {
+            return Ok(out);
+        }
+        i += 1;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn intervals_follow_real_frame_times() {
+        let iv = intervals_from_frames(&[0, 40_000, 80_500, 120_000]).unwrap();
+        assert_eq!(iv.len(), 3);
+        assert_eq!(iv[1].start(), 40_000);
+        assert_eq!(iv[1].duration_us(), 40_500);
+    }
+
+    #[test]
+    fn repeated_frame_time_is_an_error() {
+        let err = intervals_from_frames(&[0, 10, 10]).unwrap_err();
+        assert!(err.to_string().contains("frame 2"), "{err}");
+    }
+
+    #[test]
+    fn fixed_intervals_match_golden_offsets() {
+        // V2CE_SPEC Appendix B.9 uses trunc(i*1e6/30); rounding gives the same boundaries
+        // except where the fraction is >= 0.5.
+        let iv = fixed_intervals(0, 150_000, 30.0).unwrap();
+        let starts: Vec<i64> = iv.iter().map(|i| i.start()).collect();
+        assert_eq!(starts, vec![0, 33_333, 66_667, 100_000, 133_333]);
+        assert!(iv.last().unwrap().contains(150_000));
+        // 29.97 fps over an hour drifts by no more than rounding.
+        let iv = fixed_intervals(0, 3_600_000_000, 29.97).unwrap();
+        assert_eq!(iv.len(), 107_893);
+    }
+
+    #[test]
+    fn bad_rates_are_rejected() {
+        for fps in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+            assert!(fixed_intervals(0, 10, fps).is_err());
+        }
+    }
+
+    #[test]
+    fn timestamp_at_stays_inside() {
+        let iv = Interval::new(1 << 40, (1 << 40) + 100).unwrap();
+        assert_eq!(iv.timestamp_at(-5.0), 1 << 40);
+        assert_eq!(iv.timestamp_at(99.7), (1 << 40) + 99);
+        assert_eq!(iv.timestamp_at(f64::NAN), 1 << 40);
+        assert_eq!(iv.timestamp_at(42.4), (1 << 40) + 42);
+    }
+}

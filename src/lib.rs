@@ -1,0 +1,19 @@
+//! v2ce: video to continuous events.
+//!
+//! A library and the `v2ce` command-line tool that turn ordinary video into the event stream a
+//! Dynamic Vision Sensor would have produced, following the V2CE method: Stage 1 predicts event
+//! voxels from frames, Stage 2 recovers continuous timestamps from the voxels.
+
+#![warn(missing_docs)]
+
+pub mod error;
+pub mod event;
+pub mod interval;
+pub mod stage2;
+pub mod voxel;
+
+pub use error::{Error, Result};
+pub use event::{Event, EventPacket};
+pub use interval::Interval;
+pub use stage2::{Sampler, SamplerKind};
+pub use voxel::{voxelize, VoxelGrid, Voxelizer};
