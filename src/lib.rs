@@ -6,10 +6,15 @@
 
 #![warn(missing_docs)]
 
+pub mod config;
 pub mod error;
 pub mod event;
+pub mod eval;
+pub mod format;
 pub mod interval;
+pub mod metrics;
 pub mod stage2;
+pub mod synthetic;
 pub mod voxel;
 
 pub use error::{Error, Result};

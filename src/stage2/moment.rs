@@ -109,7 +109,11 @@ fn cumulative_counts(nodes: &[f64], scratch: &mut Scratch) {
     let mut lo_prev = 0u64;
     let mut ranges = Vec::new();
     for i in 0..k {
-        let lo = ceil_count(cum[i]).max(lo_prev).min(total);
+        let lo = if i + 1 == k {
+            total // the last sub-interval takes the fold of the last node
+        } else {
+            ceil_count(cum[i]).max(lo_prev).min(total)
+        };
         let hi = if i + 1 == k {
             total
         } else {

@@ -1,0 +1,5 @@
+//! Metrics that score simulated events against real recordings (V2CE_SPEC.md section 6).
+
+pub mod stage2;
+
+pub use stage2::{Stage2Metrics, Stage2Scorer};
