@@ -82,9 +82,12 @@ mod tests {
 
     #[test]
     fn unknown_key_is_rejected_with_its_line() {
-        let err = Config::parse("[stage2]\nseed = 3\nsampeler = \"even\"\n", Path::new("x.toml"))
-            .unwrap_err()
-            .to_string();
+        let err = Config::parse(
+            "[stage2]\nseed = 3\nsampeler = \"even\"\n",
+            Path::new("x.toml"),
+        )
+        .unwrap_err()
+        .to_string();
         assert!(err.contains("line 3"), "{err}");
         assert!(err.contains("sampeler"), "{err}");
         let err = Config::parse("[stage2]\nsampler = \"fast\"\n", Path::new("x.toml"))

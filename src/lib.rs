@@ -8,8 +8,8 @@
 
 pub mod config;
 pub mod error;
-pub mod event;
 pub mod eval;
+pub mod event;
 pub mod format;
 pub mod interval;
 pub mod metrics;

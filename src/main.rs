@@ -13,7 +13,11 @@ use v2ce::stage2::SamplerKind;
 use v2ce::{Error, Result};
 
 #[derive(Parser)]
-#[command(name = "v2ce", version, about = "Video to continuous events: a DVS simulator (V2CE)")]
+#[command(
+    name = "v2ce",
+    version,
+    about = "Video to continuous events: a DVS simulator (V2CE)"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -134,13 +138,16 @@ fn eval_stage2(args: Stage2Args) -> Result<()> {
         );
     }
     if args.json {
-        let text = serde_json::to_string(&report)
-            .map_err(|e| Error::invalid("report", e.to_string()))?;
+        let text =
+            serde_json::to_string(&report).map_err(|e| Error::invalid("report", e.to_string()))?;
         println!("{text}");
     } else {
         let m = &report.metrics;
         println!("sampler            {}", report.sampler);
-        println!("intervals          {} ({} with events)", m.intervals, m.intervals_scored);
+        println!(
+            "intervals          {} ({} with events)",
+            m.intervals, m.intervals_scored
+        );
         println!("events in / out    {} / {}", m.events_in, m.events_out);
         println!("METE               {:.1} us", m.mete_us);
         println!("NOE                {:.3}", m.noe);
@@ -177,7 +184,10 @@ fn load_stage2_input(args: &Stage2Args) -> Result<(Recording, Vec<Interval>)> {
             _ => Vec::new(),
         }
     } else if is_aedat4(events_path) {
-        eprintln!("v2ce: no --frames or --fps: using the APS frames of {}", events_path.display());
+        eprintln!(
+            "v2ce: no --frames or --fps: using the APS frames of {}",
+            events_path.display()
+        );
         intervals_from_frames(&format::read_frame_times(events_path)?)?
     } else {
         return Err(Error::invalid(

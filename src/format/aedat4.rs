@@ -15,7 +15,8 @@ use crate::event::Event;
 /// Reads the events and the APS frame times of an AEDAT 4.0 file.
 pub fn read(path: &Path) -> Result<(Recording, Vec<i64>)> {
     let bad = |m: String| Error::format(path, m);
-    let decoder = Decoder::new_from_file(path).map_err(|e| bad(format!("not a readable AEDAT 4.0 file: {e}")))?;
+    let decoder = Decoder::new_from_file(path)
+        .map_err(|e| bad(format!("not a readable AEDAT 4.0 file: {e}")))?;
     let mut event_stream = None;
     for (id, stream) in &decoder.id_to_stream {
         if matches!(stream.content, StreamContent::Events)
@@ -48,7 +49,11 @@ pub fn read(path: &Path) -> Result<(Recording, Vec<i64>)> {
             let f = aedat::frame_generated::size_prefixed_root_as_frame(&packet.buffer)
                 .map_err(|e| bad(format!("packet {index}: bad frame: {e}")))?;
             let (b, e) = (f.exposure_begin_t(), f.exposure_end_t());
-            frames.push(if e >= b && b > 0 { b + (e - b) / 2 } else { f.t() });
+            frames.push(if e >= b && b > 0 {
+                b + (e - b) / 2
+            } else {
+                f.t()
+            });
         }
     }
     let Some((_, width, height)) = event_stream else {

@@ -60,7 +60,10 @@ pub fn read_events(path: &Path) -> Result<Recording> {
         let bad = || {
             Error::format(
                 path,
-                format!("line {line}: expected 't_seconds x y polarity', got '{}'", f.join(" ")),
+                format!(
+                    "line {line}: expected 't_seconds x y polarity', got '{}'",
+                    f.join(" ")
+                ),
             )
         };
         if f.len() != 4 {
@@ -101,7 +104,10 @@ mod tests {
     fn seconds_parse_exactly() {
         assert_eq!(parse_seconds_us("0.003903"), Some(3903));
         assert_eq!(parse_seconds_us("2.363848"), Some(2_363_848));
-        assert_eq!(parse_seconds_us("1589163147.364965"), Some(1_589_163_147_364_965));
+        assert_eq!(
+            parse_seconds_us("1589163147.364965"),
+            Some(1_589_163_147_364_965)
+        );
         assert_eq!(parse_seconds_us("0.0000015"), Some(2));
         assert_eq!(parse_seconds_us("-1.5"), Some(-1_500_000));
         assert_eq!(parse_seconds_us("12"), Some(12_000_000));

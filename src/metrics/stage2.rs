@@ -179,8 +179,8 @@ mod tests {
         let iv = Interval::new(1 << 35, (1 << 35) + 40_000).unwrap(); // cap 12000 us
         let t0 = iv.start();
         let truth = [
-            Event::new(t0 + 10, 0, 0, true),  // only an OFF prediction at its pixel: no match
-            Event::new(t0 + 10, 1, 0, true),  // nearest 20_000 us away: overflow, capped
+            Event::new(t0 + 10, 0, 0, true), // only an OFF prediction at its pixel: no match
+            Event::new(t0 + 10, 1, 0, true), // nearest 20_000 us away: overflow, capped
             Event::new(t0 + 500, 2, 0, false), // exact
         ];
         let pred = [
