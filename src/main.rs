@@ -170,9 +170,9 @@ fn load_stage2_input(args: &Stage2Args) -> Result<(Recording, Vec<Interval>)> {
             "v2ce: no --events given: using the built-in synthetic recording \
              (a sweeping bar, 128 x 96, 2 s, frames at {fps} fps)"
         );
-        let scene = v2ce::synthetic::sweeping_bar(128, 96, 2_000_000, fps, 1);
-        let intervals = intervals_from_frames(&scene.frame_times)?;
-        return Ok((scene.recording, intervals));
+        let intervals = fixed_intervals(0, 1_999_999, fps)?;
+        let recording = v2ce::synthetic::sweeping_bar(128, 96, 2_000_000, 1);
+        return Ok((recording, intervals));
     };
     let recording = format::read_events(events_path)?;
     let intervals = if let Some(frames) = &args.frames {

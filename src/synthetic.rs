@@ -4,7 +4,7 @@
 //! The scene: a bright bar sweeping back and forth across a dark background on a small sensor.
 //! Each pixel fires a burst of ON events when the bar's leading edge passes it and OFF events at
 //! the trailing edge, several thresholds' worth while the edge is fast, with timing jitter, plus
-//! sparse background noise. Frame times are given at a fixed rate.
+//! sparse background noise.
 
 use rand::{Rng, SeedableRng};
 use rand_xoshiro::Xoshiro256PlusPlus;
@@ -12,17 +12,8 @@ use rand_xoshiro::Xoshiro256PlusPlus;
 use crate::event::Event;
 use crate::format::Recording;
 
-/// A synthetic recording with its frame times.
-#[derive(Debug, Clone)]
-pub struct Scene {
-    /// The events.
-    pub recording: Recording,
-    /// Frame times, us.
-    pub frame_times: Vec<i64>,
-}
-
-/// The sweeping-bar scene: `width x height`, `duration_us` long, frames at `fps`, from `seed`.
-pub fn sweeping_bar(width: u16, height: u16, duration_us: i64, fps: f64, seed: u64) -> Scene {
+/// The sweeping-bar scene: `width x height`, events in `[0, duration_us)`, from `seed`.
+pub fn sweeping_bar(width: u16, height: u16, duration_us: i64, seed: u64) -> Recording {
     let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
     let (w, h) = (width as f64, height as f64);
     let bar = (w / 8.0).max(1.0);
@@ -71,16 +62,8 @@ pub fn sweeping_bar(width: u16, height: u16, duration_us: i64, fps: f64, seed: u
             rng.gen(),
         ));
     }
-    let period_us = 1e6 / fps;
-    let frames = (duration_us as f64 / period_us + 1e-9).floor() as i64;
-    let frame_times = (0..=frames)
-        .map(|i| (i as f64 * period_us).round() as i64)
-        .collect();
     crate::event::sort_events(&mut events);
-    Scene {
-        recording: Recording::new(events, Some((width, height))),
-        frame_times,
-    }
+    Recording::new(events, Some((width, height)))
 }
 
 #[cfg(test)]
@@ -89,18 +72,16 @@ mod tests {
 
     #[test]
     fn deterministic_and_inside_the_sensor() {
-        let a = sweeping_bar(64, 48, 500_000, 30.0, 7);
-        let b = sweeping_bar(64, 48, 500_000, 30.0, 7);
-        assert_eq!(a.recording.events, b.recording.events);
-        assert!(a.recording.events.len() > 5_000);
+        let a = sweeping_bar(64, 48, 500_000, 7);
+        let b = sweeping_bar(64, 48, 500_000, 7);
+        assert_eq!(a.events, b.events);
+        assert!(a.events.len() > 5_000);
         assert!(a
-            .recording
             .events
             .events()
             .iter()
             .all(|e| e.x < 64 && e.y < 48 && (0..500_000).contains(&e.t)));
-        assert_eq!(a.frame_times.len(), 16);
-        let on = a.recording.events.events().iter().filter(|e| e.on).count();
-        assert!(on > 1000 && on < a.recording.events.len() - 1000);
+        let on = a.events.events().iter().filter(|e| e.on).count();
+        assert!(on > 1000 && on < a.events.len() - 1000);
     }
 }
