@@ -126,6 +126,8 @@ pub struct Scratch {
     pub cumulative: Vec<f64>,
     /// Cumulative event count after each sub-interval.
     pub through: Vec<u64>,
+    /// The moment sampler's count search.
+    pub search: moment::SearchBuffers,
 }
 
 /// The samplers the project ships, by name.

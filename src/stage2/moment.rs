@@ -107,7 +107,8 @@ fn cumulative_counts(nodes: &[f64], scratch: &mut Scratch) {
     through.clear();
     let mut ambiguous = false;
     let mut lo_prev = 0u64;
-    let mut ranges = Vec::new();
+    let ranges = &mut scratch.search.ranges;
+    ranges.clear();
     for i in 0..k {
         let lo = if i + 1 == k {
             total // the last sub-interval takes the fold of the last node
@@ -127,68 +128,97 @@ fn cumulative_counts(nodes: &[f64], scratch: &mut Scratch) {
     }
     cum.truncate(k);
     if ambiguous {
-        search(nodes, cum, &ranges, through);
+        search(nodes, cum, &mut scratch.search, through);
     }
 }
 
+/// Buffers of the count search, reused across cells.
+#[derive(Debug, Clone, Default)]
+pub struct SearchBuffers {
+    /// Feasible `(lo, hi)` cumulative counts per sub-interval.
+    ranges: Vec<(u64, u64)>,
+    /// Candidate cumulative counts, all sub-intervals back to back.
+    candidates: Vec<u64>,
+    /// Start of each sub-interval's candidates in `candidates` (one more entry at the end).
+    offsets: Vec<usize>,
+    /// Best log-likelihood up to each candidate.
+    score: Vec<f64>,
+    /// The previous sub-interval's candidate (absolute index) on that best path.
+    back: Vec<usize>,
+}
+
 /// The dynamic programme of the module docs over candidate cumulative counts.
-fn search(nodes: &[f64], cum: &[f64], ranges: &[(u64, u64)], through: &mut [u64]) {
+fn search(nodes: &[f64], cum: &[f64], buf: &mut SearchBuffers, through: &mut [u64]) {
+    let SearchBuffers {
+        ranges,
+        candidates,
+        offsets,
+        score,
+        back,
+    } = buf;
     let k = ranges.len();
-    let candidates: Vec<Vec<u64>> = ranges
-        .iter()
-        .map(|&(lo, hi)| {
-            let n = (hi - lo + 1) as usize;
-            if n <= MAX_CANDIDATES {
-                (lo..=hi).collect()
-            } else {
-                let span = (hi - lo) as f64;
-                let mut c: Vec<u64> = (0..MAX_CANDIDATES)
-                    .map(|j| lo + (span * j as f64 / (MAX_CANDIDATES - 1) as f64).round() as u64)
-                    .collect();
-                c.dedup();
-                c
+    candidates.clear();
+    offsets.clear();
+    for &(lo, hi) in ranges.iter() {
+        offsets.push(candidates.len());
+        if hi - lo < MAX_CANDIDATES as u64 {
+            candidates.extend(lo..=hi);
+        } else {
+            let span = (hi - lo) as f64;
+            let step = span / (MAX_CANDIDATES - 1) as f64;
+            for j in 0..MAX_CANDIDATES {
+                let v = lo + (j as f64 * step).round() as u64;
+                if j == 0 || candidates.last() != Some(&v) {
+                    candidates.push(v);
+                }
             }
-        })
-        .collect();
-    // score[i][j]: best log-likelihood of sub-intervals 0..=i with M_i = candidates[i][j].
-    let mut score: Vec<Vec<f64>> = Vec::with_capacity(k);
-    let mut back: Vec<Vec<usize>> = Vec::with_capacity(k);
+        }
+    }
+    offsets.push(candidates.len());
+    score.clear();
+    back.clear();
     for i in 0..k {
-        let lambda = ((nodes[i] + nodes[i + 1]) / 2.0).max(1e-3);
-        let ln_lambda = lambda.ln();
-        let mut row = Vec::with_capacity(candidates[i].len());
-        let mut from = Vec::with_capacity(candidates[i].len());
-        for &cur in &candidates[i] {
-            let mut best = (f64::NEG_INFINITY, 0usize);
-            let prevs: &[u64] = if i == 0 { &[0] } else { &candidates[i - 1] };
-            for (j, &prev) in prevs.iter().enumerate() {
+        let ln_lambda = ((nodes[i] + nodes[i + 1]) / 2.0).max(1e-3).ln();
+        let prevs = if i == 0 {
+            0..0
+        } else {
+            offsets[i - 1]..offsets[i]
+        };
+        for c in offsets[i]..offsets[i + 1] {
+            let cur = candidates[c];
+            let excess = cur as f64 - cum[i];
+            let mut best = (f64::NEG_INFINITY, usize::MAX);
+            if i == 0 {
+                best = (sub_interval_log_likelihood(cur, excess, ln_lambda), usize::MAX);
+            }
+            for p in prevs.clone() {
+                let prev = candidates[p];
                 if prev > cur {
                     continue;
                 }
-                let base = if i == 0 { 0.0 } else { score[i - 1][j] };
-                let s =
-                    base + sub_interval_log_likelihood(cur - prev, cur as f64 - cum[i], ln_lambda);
+                let s = score[p] + sub_interval_log_likelihood(cur - prev, excess, ln_lambda);
                 if s > best.0 {
-                    best = (s, j);
+                    best = (s, p);
                 }
             }
-            row.push(best.0);
-            from.push(best.1);
+            score.push(best.0);
+            back.push(best.1);
         }
-        score.push(row);
-        back.push(from);
     }
     // Trace back from the best final candidate (the last range is a single value).
-    let last = &score[k - 1];
-    let Some(mut j) = (0..last.len()).max_by(|&a, &b| last[a].total_cmp(&last[b])) else {
+    let last = offsets[k - 1]..offsets[k];
+    let Some(mut c) = last.max_by(|&a, &b| score[a].total_cmp(&score[b])) else {
         return;
     };
-    if !last[j].is_finite() {
+    if !score[c].is_finite() {
         return; // keep chain decoupling's counts
     }
     for i in (0..k).rev() {
-        through[i] = candidates[i][j];
-        j = back[i][j];
+        through[i] = candidates[c];
+        c = back[c];
+        if c == usize::MAX {
+            break;
+        }
     }
 }
 
@@ -207,7 +237,23 @@ fn sub_interval_log_likelihood(m: u64, sum: f64, ln_lambda: f64) -> f64 {
 }
 
 fn ln_factorial(m: u64) -> f64 {
-    (1..=m).map(|i| (i as f64).ln()).sum()
+    const TABLE: usize = 128;
+    static SMALL: std::sync::OnceLock<[f64; TABLE]> = std::sync::OnceLock::new();
+    let table = SMALL.get_or_init(|| {
+        let mut t = [0.0; TABLE];
+        for i in 1..TABLE {
+            t[i] = t[i - 1] + (i as f64).ln();
+        }
+        t
+    });
+    if (m as usize) < TABLE {
+        table[m as usize]
+    } else {
+        // Stirling's series; its error is below 1e-9 here.
+        let x = m as f64;
+        x * x.ln() - x + 0.5 * (2.0 * std::f64::consts::PI * x).ln() + 1.0 / (12.0 * x)
+            - 1.0 / (360.0 * x * x * x)
+    }
 }
 
 /// The log density of the sum of `m` independent uniforms on `[0, 1]` at `s` in `[0, m]`;
@@ -287,6 +333,10 @@ mod tests {
         // Triangle for m = 2.
         assert!((ln_irwin_hall(2, 0.5).exp() - 0.5).abs() < 1e-12);
         assert!((ln_irwin_hall(2, 1.5).exp() - 0.5).abs() < 1e-12);
+        // The factorial table and Stirling's series meet smoothly.
+        let direct: f64 = (1..=200).map(|i| (i as f64).ln()).sum();
+        assert!((ln_factorial(200) - direct).abs() < 1e-9);
+        assert!((ln_factorial(127) - (ln_factorial(128) - 128f64.ln())).abs() < 1e-9);
     }
 
     /// The example of the module docs: a pair at 0.6 and 0.7 in sub-interval 3.
