@@ -321,7 +321,7 @@ mod tests {
         let iv = Interval::new(0, 1800).unwrap();
         let g = voxelize(&events, iv, 2, 1, 10).unwrap();
         let dense = g.to_dense();
-        let at = |ch: usize, y: usize, x: usize| dense[(ch * 1 + y) * 2 + x];
+        let at = |ch: usize, y: usize, x: usize| dense[(ch + y) * 2 + x]; // H = 1
         assert_eq!(at(0, 0, 0), 1.0);
         assert_eq!(at(2, 0, 0), 0.5);
         assert_eq!(at(3, 0, 0), 0.5);
