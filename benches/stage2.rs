@@ -24,7 +24,10 @@ fn cases() -> Vec<Case> {
         .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data"));
     let mut out = Vec::new();
     let davis = dir.join("davis346/davis346.aedat4");
-    if let (Ok(rec), Ok(frames)) = (format::read_events(&davis), format::read_frame_times(&davis)) {
+    if let (Ok(rec), Ok(frames)) = (
+        format::read_events(&davis),
+        format::read_frame_times(&davis),
+    ) {
         if let Ok(intervals) = intervals_from_frames(&frames) {
             out.push(Case {
                 name: "davis346",
@@ -44,7 +47,10 @@ fn cases() -> Vec<Case> {
         }
     }
     if out.is_empty() {
-        eprintln!("no recordings under {}: benchmarking the synthetic scene", dir.display());
+        eprintln!(
+            "no recordings under {}: benchmarking the synthetic scene",
+            dir.display()
+        );
         out.push(Case {
             name: "synthetic346",
             recording: v2ce::synthetic::sweeping_bar(346, 260, 2_000_000, 1),
@@ -67,7 +73,11 @@ fn bench(c: &mut Criterion) {
             .intervals
             .iter()
             .zip(&slices)
-            .map(|(iv, ev)| voxelizer.voxelize(ev, *iv).expect("events inside the sensor"))
+            .map(|(iv, ev)| {
+                voxelizer
+                    .voxelize(ev, *iv)
+                    .expect("events inside the sensor")
+            })
             .collect();
         let mut group = c.benchmark_group(format!("stage2/{}", case.name));
         group.throughput(Throughput::Elements(case.intervals.len() as u64));
@@ -86,17 +96,21 @@ fn bench(c: &mut Criterion) {
         let mut out = Vec::new();
         for kind in SamplerKind::ALL {
             let sampler = kind.build(1);
-            group.bench_with_input(BenchmarkId::new("sample", kind.name()), &grids, |b, grids| {
-                b.iter(|| {
-                    let mut n = 0;
-                    for (grid, iv) in grids.iter().zip(&case.intervals) {
-                        out.clear();
-                        sampler.sample(grid, *iv, &mut out);
-                        n += out.len();
-                    }
-                    n
-                })
-            });
+            group.bench_with_input(
+                BenchmarkId::new("sample", kind.name()),
+                &grids,
+                |b, grids| {
+                    b.iter(|| {
+                        let mut n = 0;
+                        for (grid, iv) in grids.iter().zip(&case.intervals) {
+                            out.clear();
+                            sampler.sample(grid, *iv, &mut out);
+                            n += out.len();
+                        }
+                        n
+                    })
+                },
+            );
         }
         group.finish();
     }

@@ -189,7 +189,10 @@ fn search(nodes: &[f64], cum: &[f64], buf: &mut SearchBuffers, through: &mut [u6
             let excess = cur as f64 - cum[i];
             let mut best = (f64::NEG_INFINITY, usize::MAX);
             if i == 0 {
-                best = (sub_interval_log_likelihood(cur, excess, ln_lambda), usize::MAX);
+                best = (
+                    sub_interval_log_likelihood(cur, excess, ln_lambda),
+                    usize::MAX,
+                );
             }
             for p in prevs.clone() {
                 let prev = candidates[p];
