@@ -120,10 +120,7 @@ fn eval_stage2(args: Stage2Args) -> Result<()> {
         sampler.as_ref(),
         |events| {
             if let Some((path, w)) = writer.as_mut() {
-                for e in events {
-                    writeln!(w, "{},{},{},{}", e.t, e.x, e.y, e.on as u8)
-                        .map_err(|err| Error::io(path.clone(), err))?;
-                }
+                csv::write_rows(w, events).map_err(|err| Error::io(path.clone(), err))?;
             }
             Ok(())
         },

@@ -7,21 +7,27 @@ use v2ce::format::{self, Recording};
 use v2ce::interval::{fixed_intervals, intervals_from_frames, Interval};
 use v2ce::stage2::SamplerKind;
 
-fn data_dir() -> Option<PathBuf> {
+/// The recordings folder, or the path that was looked at.
+fn data_dir() -> Result<PathBuf, PathBuf> {
     let dir = std::env::var_os("V2CE_DATA")
         .map(PathBuf::from)
         .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data"));
-    dir.is_dir().then_some(dir)
+    if dir.is_dir() {
+        Ok(dir)
+    } else {
+        Err(dir)
+    }
 }
 
 macro_rules! data_or_skip {
     ($test:literal) => {
         match data_dir() {
-            Some(d) => d,
-            None => {
+            Ok(d) => d,
+            Err(d) => {
                 eprintln!(
-                    "SKIPPED {}: ../shared/data not found (set V2CE_DATA to the recordings folder)",
-                    $test
+                    "SKIPPED {}: no recordings at {} (set V2CE_DATA to the recordings folder)",
+                    $test,
+                    d.display()
                 );
                 return;
             }

@@ -10,12 +10,18 @@ use crate::event::Event;
 /// The header line.
 pub const HEADER: &str = "t_us,x,y,on";
 
-/// Writes events as CSV to `w`.
-pub fn write_to(mut w: impl Write, events: &[Event]) -> std::io::Result<()> {
-    writeln!(w, "{HEADER}")?;
+/// Writes events as CSV rows (no header) to `w`.
+pub fn write_rows(w: &mut impl Write, events: &[Event]) -> std::io::Result<()> {
     for e in events {
         writeln!(w, "{},{},{},{}", e.t, e.x, e.y, e.on as u8)?;
     }
+    Ok(())
+}
+
+/// Writes the header and events as CSV to `w`.
+pub fn write_to(mut w: impl Write, events: &[Event]) -> std::io::Result<()> {
+    writeln!(w, "{HEADER}")?;
+    write_rows(&mut w, events)?;
     w.flush()
 }
 
