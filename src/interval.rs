@@ -86,8 +86,9 @@ pub fn intervals_from_frames(frame_times: &[i64]) -> Result<Vec<Interval>> {
 
 /// Fixed-rate intervals covering `[first, last]` at `fps` frames per second.
 ///
-/// Boundaries sit at `first + round(i * 1e6 / fps)` microseconds, so a rate like 29.97 does not
-/// accumulate rounding drift. The last interval is the one that contains `last`.
+/// Boundaries sit at `first + floor(i * 1e6 / fps)` microseconds (the reference's
+/// `trunc(i * 1e6 / fps)` offsets), computed from `i` each time, so a rate like 29.97 does not
+/// accumulate drift. The last interval is the one that contains `last`.
 pub fn fixed_intervals(first: i64, last: i64, fps: f64) -> Result<Vec<Interval>> {
     if !(fps.is_finite() && fps > 0.0 && fps <= 1e6) {
         return Err(Error::invalid(
@@ -99,7 +100,7 @@ pub fn fixed_intervals(first: i64, last: i64, fps: f64) -> Result<Vec<Interval>>
         return Ok(Vec::new());
     }
     let period = 1e6 / fps;
-    let boundary = |i: u64| first + (i as f64 * period).round() as i64;
+    let boundary = |i: u64| first + (i as f64 * period).floor() as i64;
     let mut out = Vec::new();
     let mut i = 0u64;
     loop {
@@ -132,12 +133,11 @@ mod tests {
 
     #[test]
     fn fixed_intervals_match_golden_offsets() {
-        // V2CE_SPEC Appendix B.9 uses trunc(i*1e6/30); rounding gives the same boundaries
-        // except where the fraction is >= 0.5.
-        let iv = fixed_intervals(0, 150_000, 30.0).unwrap();
+        // V2CE_SPEC Appendix B.9: trunc(i * 1e6 / 30).
+        let iv = fixed_intervals(0, 170_000, 30.0).unwrap();
         let starts: Vec<i64> = iv.iter().map(|i| i.start()).collect();
-        assert_eq!(starts, vec![0, 33_333, 66_667, 100_000, 133_333]);
-        assert!(iv.last().unwrap().contains(150_000));
+        assert_eq!(starts, vec![0, 33_333, 66_666, 100_000, 133_333, 166_666]);
+        assert!(iv.last().unwrap().contains(170_000));
         // 29.97 fps over an hour drifts by no more than rounding.
         let iv = fixed_intervals(0, 3_600_000_000, 29.97).unwrap();
         assert_eq!(iv.len(), 107_893);

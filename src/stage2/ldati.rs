@@ -128,6 +128,39 @@ mod tests {
         assert_eq!(local_slope(&[5, 2, 0, 0, 0, 0, 0, 1, 3], 8), 0.0);
     }
 
+    /// V2CE_SPEC Appendix B.2 end to end: the voxel of example 1 sampled over a 30 fps interval.
+    /// The ON events come back at 0 and 2.5 delta = 9259 us. The OFF event on node 9 is the
+    /// interval's end: the reference emits it at 8 delta (29629 us), here it stays at the end
+    /// (the last microsecond of the interval).
+    /// Appendix B.4: diffuse mass 0.01 on every node is one event at 0.99 delta = 3666.67 us,
+    /// which the reference truncates to 3666 and this port rounds to 3667.
+    #[test]
+    fn golden_timestamps() {
+        use crate::{voxelize, Event, Interval, VoxelGrid};
+        let events = [
+            Event::new(0, 0, 0, true),
+            Event::new(500, 0, 0, true),
+            Event::new(1800, 1, 0, false),
+        ];
+        let grid = voxelize(&events, Interval::new(0, 1800).unwrap(), 2, 1, 10).unwrap();
+        let frame = Interval::new(0, 33_333).unwrap();
+        for type2 in [Type2::Slope, Type2::Uniform] {
+            let mut out = Vec::new();
+            Ldati { seed: 0, type2 }.sample(&grid, frame, &mut out);
+            let got: Vec<_> = out.iter().map(|e| (e.t, e.x, e.on)).collect();
+            assert_eq!(got, vec![(0, 0, true), (9259, 0, true), (33_332, 1, false)]);
+        }
+        let mut diffuse = VoxelGrid::new(1, 1, 10).unwrap();
+        diffuse.push_cell(0, 0, true, &[0.01; 10]).unwrap();
+        let mut out = Vec::new();
+        Ldati {
+            seed: 0,
+            type2: Type2::Slope,
+        }
+        .sample(&diffuse, frame, &mut out);
+        assert_eq!(out, vec![Event::new(3667, 0, 0, true)]);
+    }
+
     #[test]
     fn inverse_cdf_is_stable_and_bounded() {
         for &kappa in &[
