@@ -171,21 +171,37 @@ fn load_stage2_input(args: &Stage2Args) -> Result<(Recording, Vec<Interval>)> {
         let recording = v2ce::synthetic::sweeping_bar(128, 96, 2_000_000, 1);
         return Ok((recording, intervals));
     };
-    let recording = format::read_events(events_path)?;
-    let intervals = if let Some(frames) = &args.frames {
-        intervals_from_frames(&format::read_frame_times(frames)?)?
+    // An AEDAT4 event file that also supplies the frames is decoded once.
+    let own_frames = args.fps.is_none()
+        && is_aedat4(events_path)
+        && args.frames.as_deref().is_none_or(|f| f == events_path);
+    let (recording, frames) = if own_frames {
+        if args.frames.is_none() {
+            eprintln!(
+                "v2ce: no --frames or --fps: using the APS frames of {}",
+                events_path.display()
+            );
+        }
+        let (recording, frames) = format::aedat4::read(events_path)?;
+        (
+            recording,
+            Some(format::require_frames(events_path, frames)?),
+        )
+    } else {
+        let frames = match &args.frames {
+            Some(path) => Some(format::read_frame_times(path)?),
+            None => None,
+        };
+        (format::read_events(events_path)?, frames)
+    };
+    let intervals = if let Some(frames) = frames {
+        intervals_from_frames(&frames)?
     } else if let Some(fps) = args.fps {
         let ev = recording.events.events();
         match (ev.first(), ev.last()) {
             (Some(a), Some(b)) => fixed_intervals(a.t, b.t, fps)?,
             _ => Vec::new(),
         }
-    } else if is_aedat4(events_path) {
-        eprintln!(
-            "v2ce: no --frames or --fps: using the APS frames of {}",
-            events_path.display()
-        );
-        intervals_from_frames(&format::read_frame_times(events_path)?)?
     } else {
         return Err(Error::invalid(
             "arguments",

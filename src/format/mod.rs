@@ -79,6 +79,11 @@ pub fn read_frame_times(path: &Path) -> Result<Vec<i64>> {
             ))
         }
     };
+    require_frames(path, times)
+}
+
+/// Checks that `times`, read from `path`, hold at least two frames (one interval).
+pub fn require_frames(path: &Path, times: Vec<i64>) -> Result<Vec<i64>> {
     if times.len() < 2 {
         return Err(Error::format(
             path,
