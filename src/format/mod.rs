@@ -8,6 +8,7 @@
 
 pub mod aedat4;
 pub mod csv;
+pub mod evt2;
 pub mod ijrr;
 
 use std::path::Path;
