@@ -153,9 +153,13 @@ fn read_full(r: &mut impl Read, buf: &mut [u8]) -> std::io::Result<usize> {
 }
 
 /// Writes EVT 2.0: the header, then a time-high word whenever bits 33..6 of the time change.
+///
+/// Across a gap of more than a quarter of the 34-bit range, intermediate time-high words are
+/// written so that a decoder can follow the wrap (it only sees wrapped values).
 pub struct Encoder<W: Write> {
     writer: W,
-    time_high: Option<u32>,
+    /// `t >> 6` of the last time-high word written, unwrapped.
+    time_high: Option<i64>,
     last_t: i64,
 }
 
@@ -197,15 +201,26 @@ impl<W: Write> Encoder<W> {
                 ));
             }
             self.last_t = e.t;
-            let wrapped = (e.t as u64) & ((1 << TIME_BITS) - 1);
-            let high = (wrapped >> 6) as u32;
-            // A new epoch needs a time-high word even if the wrapped value matches.
-            if self.time_high != Some(high) {
-                words.extend_from_slice(&((0x8 << 28) | high).to_le_bytes());
-                self.time_high = Some(high);
+            let target = e.t >> 6;
+            let step = (HIGH_MASK / 4) as i64;
+            let mut emit = |high: i64| {
+                let w = (0x8 << 28) | (high as u32 & HIGH_MASK);
+                words.extend_from_slice(&w.to_le_bytes());
+            };
+            match self.time_high {
+                Some(mut high) if high != target => {
+                    while target - high > step {
+                        high += step;
+                        emit(high);
+                    }
+                    emit(target);
+                }
+                None => emit(target),
+                Some(_) => {}
             }
+            self.time_high = Some(target);
             let word = ((e.on as u32) << 28)
-                | (((wrapped & 0x3F) as u32) << 22)
+                | (((e.t & 0x3F) as u32) << 22)
                 | ((e.x as u32) << 11)
                 | e.y as u32;
             words.extend_from_slice(&word.to_le_bytes());
@@ -259,6 +274,13 @@ mod tests {
         assert!(events[399].t > 2 << 34);
         let (_, back) = round_trip(&events);
         assert_eq!(back, events);
+        // Gaps of exactly 2^34 us (same wrapped time) and of more than half the range.
+        let events = vec![
+            Event::new(7, 0, 0, true),
+            Event::new(7 + (1 << 34), 0, 0, true),
+            Event::new(3 * (1 << 34) + (1 << 33) + 100, 0, 0, false),
+        ];
+        assert_eq!(round_trip(&events).1, events);
     }
 
     #[test]
