@@ -109,34 +109,51 @@ fn check_floor(rec: &Recording, intervals: &[Interval], ldati_floor_us: f64) {
     }
 }
 
-/// The Prophesee EVT 2.0 samples decode to faery's event counts (the data README), in time
-/// order and inside a 640 x 480 sensor, and survive an encode/decode round trip.
+/// Every recording, with the event count faery reports for it (the data README).
+const RECORDINGS: [(&str, usize); 5] = [
+    ("davis346/davis346.aedat4", 78_830),
+    ("dvxplorer/data_sample.aedat4", 323_963),
+    ("prophesee/sparklers.raw", 521_252),
+    ("prophesee/evt2_sample.raw", 539_481),
+    ("prophesee/evt3_sample.raw", 219_596),
+];
+
+/// Each recording decodes to faery's count, in time order and inside its sensor, and comes
+/// back identical (t, x, y, on, and order) after encoding to every format and decoding again.
 #[test]
-fn evt2_samples_decode_and_round_trip() {
-    use v2ce::format::evt2;
-    let d = data_or_skip!("evt2_samples_decode_and_round_trip");
-    for (name, count) in [
-        ("sparklers.raw", 521_252usize),
-        ("evt2_sample.raw", 539_481),
-    ] {
-        let file = std::fs::File::open(d.join("prophesee").join(name)).unwrap();
-        let mut r = std::io::BufReader::new(file);
-        let header = evt2::read_header(&mut r).unwrap();
-        assert!(header.lines.iter().any(|l| l == "evt 2.0"), "{name}");
-        let mut events = Vec::new();
-        let mut dec = evt2::Decoder::new(r);
-        while dec.read_events(&mut events, 65_536).unwrap() > 0 {}
+fn every_recording_round_trips_through_every_format() {
+    use v2ce::format::{Compression, Format};
+    let d = data_or_skip!("every_recording_round_trips_through_every_format");
+    let out = std::env::temp_dir().join(format!("v2ce-rt-{}", std::process::id()));
+    std::fs::create_dir_all(&out).unwrap();
+    for (name, count) in RECORDINGS {
+        let rec = format::read_events(&d.join(name)).unwrap();
+        let events = rec.events.events();
         assert_eq!(events.len(), count, "{name}");
-        assert!(events.windows(2).all(|w| w[0].t <= w[1].t), "{name}");
-        assert!(events.iter().all(|e| e.x < 640 && e.y < 480), "{name}");
-        let mut enc = evt2::Encoder::new(Vec::new(), 640, 480).unwrap();
-        enc.write(&events).unwrap();
-        let bytes = enc.finish().unwrap();
-        let mut r = std::io::BufReader::new(&bytes[..]);
-        assert_eq!(evt2::read_header(&mut r).unwrap().size, Some((640, 480)));
-        let mut back = Vec::new();
-        let mut dec = evt2::Decoder::new(r);
-        while dec.read_events(&mut back, 65_536).unwrap() > 0 {}
-        assert_eq!(back, events, "{name}");
+        assert!(
+            events.iter().all(|e| e.x < rec.width && e.y < rec.height),
+            "{name}"
+        );
+        for (file, format) in [
+            ("a.aedat4", Format::Aedat4(Compression::Lz4)),
+            ("b.aedat4", Format::Aedat4(Compression::Zstd)),
+            ("c.aedat4", Format::Aedat4(Compression::None)),
+            ("e2.raw", Format::Evt2),
+            ("e3.raw", Format::Evt3),
+            ("e.csv", Format::Csv),
+        ] {
+            let path = out.join(file);
+            let mut enc = format::create(&path, format, rec.width, rec.height).unwrap();
+            for chunk in events.chunks(10_007) {
+                enc.write(chunk).unwrap();
+            }
+            enc.finish().unwrap();
+            let back = format::read_events(&path).unwrap();
+            assert!(back.events.events() == events, "{name} through {file}");
+            if format != Format::Csv {
+                assert_eq!((back.width, back.height), (rec.width, rec.height), "{name}");
+            }
+        }
     }
+    std::fs::remove_dir_all(&out).unwrap();
 }

@@ -1,19 +1,31 @@
 //! CSV events: a header line `t_us,x,y,on`, then one event per line with `on` = 1 or 0.
 
-use std::io::{BufRead, BufReader, BufWriter, Write};
+use std::io::{BufRead, Write};
 use std::path::Path;
 
-use super::Recording;
+use super::{EventDecoder, EventEncoder, Recording};
 use crate::error::{Error, Result};
 use crate::event::Event;
 
 /// The header line.
 pub const HEADER: &str = "t_us,x,y,on";
 
+/// The longest line accepted, in bytes.
+const MAX_LINE: u64 = 4096;
+
 /// Writes events as CSV rows (no header) to `w`.
 pub fn write_rows(w: &mut impl Write, events: &[Event]) -> std::io::Result<()> {
+    let mut ints = itoa::Buffer::new();
+    let mut line = Vec::with_capacity(48);
     for e in events {
-        writeln!(w, "{},{},{},{}", e.t, e.x, e.y, e.on as u8)?;
+        line.clear();
+        line.extend_from_slice(ints.format(e.t).as_bytes());
+        line.push(b',');
+        line.extend_from_slice(ints.format(e.x).as_bytes());
+        line.push(b',');
+        line.extend_from_slice(ints.format(e.y).as_bytes());
+        line.extend_from_slice(if e.on { b",1\n" } else { b",0\n" });
+        w.write_all(&line)?;
     }
     Ok(())
 }
@@ -28,7 +40,7 @@ pub fn write_to(mut w: impl Write, events: &[Event]) -> std::io::Result<()> {
 /// Writes events to a CSV file.
 pub fn write(path: &Path, events: &[Event]) -> Result<()> {
     let file = std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
-    write_to(BufWriter::new(file), events).map_err(|e| Error::io(path, e))
+    write_to(std::io::BufWriter::new(file), events).map_err(|e| Error::io(path, e))
 }
 
 /// Parses one data line.
@@ -45,23 +57,94 @@ fn parse_line(line: &str) -> Option<Event> {
     f.next().is_none().then_some(Event::new(t, x, y, on))
 }
 
-/// Reads a CSV event file (the header is optional).
-pub fn read(path: &Path) -> Result<Recording> {
-    let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
-    let mut events = Vec::new();
-    for (i, line) in BufReader::new(file).lines().enumerate() {
-        let line = line.map_err(|e| Error::io(path, e))?;
-        let line = line.trim();
-        if line.is_empty() || (i == 0 && line == HEADER) {
-            continue;
+/// Streams events out of CSV text (the header line is optional).
+pub struct Decoder<R> {
+    reader: R,
+    line: u64,
+    buf: Vec<u8>,
+}
+
+impl<R: BufRead> Decoder<R> {
+    /// A decoder over CSV text.
+    pub fn new(reader: R) -> Self {
+        Decoder {
+            reader,
+            line: 0,
+            buf: Vec::new(),
         }
-        events.push(parse_line(line).ok_or_else(|| {
-            Error::format(
-                path,
-                format!("line {}: expected '{HEADER}' fields, got '{line}'", i + 1),
-            )
-        })?);
     }
+}
+
+impl<R: BufRead> EventDecoder for Decoder<R> {
+    /// CSV has no sensor size.
+    fn size(&self) -> Option<(u16, u16)> {
+        None
+    }
+
+    fn read_events(&mut self, out: &mut Vec<Event>, max: usize) -> Result<usize> {
+        let start = out.len();
+        let bad = |line: u64, m: String| Error::invalid("CSV stream", format!("line {line}: {m}"));
+        while out.len() - start < max {
+            self.buf.clear();
+            let n = std::io::Read::take(&mut self.reader, MAX_LINE)
+                .read_until(b'\n', &mut self.buf)
+                .map_err(|e| bad(self.line + 1, e.to_string()))?;
+            if n == 0 {
+                break;
+            }
+            self.line += 1;
+            if n as u64 == MAX_LINE && self.buf.last() != Some(&b'\n') {
+                return Err(bad(self.line, format!("longer than {MAX_LINE} bytes")));
+            }
+            let text = std::str::from_utf8(&self.buf)
+                .map_err(|_| bad(self.line, "not UTF-8".into()))?
+                .trim();
+            if text.is_empty() || (self.line == 1 && text == HEADER) {
+                continue;
+            }
+            out.push(parse_line(text).ok_or_else(|| {
+                bad(
+                    self.line,
+                    format!("expected '{HEADER}' fields, got '{}'", text.escape_debug()),
+                )
+            })?);
+        }
+        Ok(out.len() - start)
+    }
+}
+
+/// Writes CSV: the header on creation, then one row per event.
+pub struct Encoder<W: Write> {
+    writer: W,
+}
+
+impl<W: Write> Encoder<W> {
+    /// Writes the header line.
+    pub fn new(mut writer: W) -> Result<Self> {
+        writeln!(writer, "{HEADER}").map_err(output_error)?;
+        Ok(Encoder { writer })
+    }
+}
+
+fn output_error(e: std::io::Error) -> Error {
+    Error::invalid("CSV output", e.to_string())
+}
+
+impl<W: Write> EventEncoder for Encoder<W> {
+    fn write(&mut self, events: &[Event]) -> Result<()> {
+        write_rows(&mut self.writer, events).map_err(output_error)
+    }
+
+    fn finish(&mut self) -> Result<()> {
+        self.writer.flush().map_err(output_error)
+    }
+}
+
+/// Reads a CSV event file.
+pub fn read(path: &Path) -> Result<Recording> {
+    let mut decoder = super::open(path)?;
+    let mut events = Vec::new();
+    while decoder.read_events(&mut events, 1 << 16)? > 0 {}
     Ok(Recording::new(events, None))
 }
 
@@ -77,14 +160,18 @@ mod tests {
         let events = vec![
             Event::new(-5, 1, 2, true),
             Event::new(1 << 40, 65535, 0, false),
+            Event::new(i64::MAX, 0, 65535, false),
         ];
         write(&p, &events).unwrap();
         let back = read(&p).unwrap();
         assert_eq!(back.events.events(), &events[..]);
-        assert_eq!((back.width, back.height), (65535, 3));
+        assert_eq!((back.width, back.height), (65535, 65535));
         std::fs::write(&p, "t_us,x,y,on\n1,2,3,1\n4,5,x,0\n").unwrap();
         let err = read(&p).unwrap_err().to_string();
         assert!(err.contains("line 3"), "{err}");
+        std::fs::write(&p, vec![b'1'; 10_000]).unwrap();
+        let err = read(&p).unwrap_err().to_string();
+        assert!(err.contains("longer than"), "{err}");
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -2,19 +2,240 @@
 //!
 //! | extension | module | events | frame times |
 //! |---|---|---|---|
-//! | `.aedat4` | [`aedat4`] | yes | the APS frames' mid-exposure times |
-//! | `.txt` | [`ijrr`] | `events.txt` (`t_seconds x y polarity`) | `images.txt` (`t_seconds path`) |
-//! | `.csv` | [`csv`] | `t_us,x,y,on` | - |
+//! | `.aedat4` | [`aedat4`] | read and written | the APS frames' mid-exposure times |
+//! | `.raw` | [`evt2`], [`evt3`] (header in [`raw`]) | read and written | - |
+//! | `.csv` | [`csv`] | `t_us,x,y,on`, read and written | - |
+//! | `.txt` | [`ijrr`] | `events.txt` (`t_seconds x y polarity`), read | `images.txt` (`t_seconds path`) |
+//!
+//! Every format has a streaming [`EventDecoder`] and (but IJRR) an [`EventEncoder`]; [`open`] and
+//! [`create`] pick them by extension.
 
 pub mod aedat4;
 pub mod csv;
 pub mod evt2;
+pub mod evt3;
 pub mod ijrr;
+pub mod raw;
 
-use std::path::Path;
+use std::io::{BufReader, BufWriter, Read};
+use std::path::{Path, PathBuf};
 
 use crate::error::{Error, Result};
 use crate::event::{Event, EventPacket};
+
+pub use aedat4::Compression;
+
+/// A stream of events read in chunks, so memory stays flat however long the input.
+pub trait EventDecoder {
+    /// Sensor width and height, when the input says.
+    fn size(&self) -> Option<(u16, u16)>;
+
+    /// Appends about `max` events to `out` (a format may finish the word it is in); returns
+    /// how many were added, 0 at the end of the input.
+    fn read_events(&mut self, out: &mut Vec<Event>, max: usize) -> Result<usize>;
+}
+
+/// A writer of events in time order.
+pub trait EventEncoder {
+    /// Appends events; they must come in time order (within and across calls).
+    fn write(&mut self, events: &[Event]) -> Result<()>;
+
+    /// Writes whatever the format needs at the end and flushes. Call once, last.
+    fn finish(&mut self) -> Result<()>;
+}
+
+/// Reads whole `word`-byte words into `buf`; returns the bytes read (less than `buf.len()` only
+/// at the end of the input). Ending inside a word is an error naming the word.
+pub(crate) fn read_words(
+    r: &mut impl Read,
+    buf: &mut [u8],
+    word: usize,
+    first_word: u64,
+    what: &'static str,
+) -> Result<usize> {
+    let mut n = 0;
+    while n < buf.len() {
+        match r.read(&mut buf[n..]) {
+            Ok(0) => break,
+            Ok(k) => n += k,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+            Err(e) => return Err(Error::invalid(what, e.to_string())),
+        }
+    }
+    if n % word != 0 {
+        return Err(Error::invalid(
+            what,
+            format!(
+                "ends inside word {} (a truncated input)",
+                first_word + (n / word) as u64
+            ),
+        ));
+    }
+    Ok(n)
+}
+
+/// The event file formats, picked by extension (`.raw` needs the EVT version).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Format {
+    /// AEDAT 4.0 with the given packet compression.
+    Aedat4(Compression),
+    /// Prophesee RAW EVT 2.0.
+    Evt2,
+    /// Prophesee RAW EVT 3.0.
+    Evt3,
+    /// CSV `t_us,x,y,on`.
+    Csv,
+}
+
+impl Format {
+    /// The output format for `path`: `.aedat4` (with `compression`), `.raw` (with `evt` 2 or 3,
+    /// 3 when absent), or `.csv`.
+    pub fn for_output(path: &Path, evt: Option<u8>, compression: Compression) -> Result<Self> {
+        match (extension(path).as_str(), evt) {
+            ("aedat4", _) => Ok(Format::Aedat4(compression)),
+            ("raw", Some(2)) => Ok(Format::Evt2),
+            ("raw", Some(3) | None) => Ok(Format::Evt3),
+            ("raw", Some(v)) => Err(Error::invalid(
+                "EVT version",
+                format!("{v} (expected 2 or 3)"),
+            )),
+            ("csv", _) => Ok(Format::Csv),
+            (other, _) => Err(Error::invalid(
+                "output file",
+                format!(
+                    "{}: unknown extension '.{other}' (expected .aedat4, .raw or .csv)",
+                    path.display()
+                ),
+            )),
+        }
+    }
+
+    /// A short name: `aedat4`, `evt2`, `evt3`, `csv`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Format::Aedat4(_) => "aedat4",
+            Format::Evt2 => "evt2",
+            Format::Evt3 => "evt3",
+            Format::Csv => "csv",
+        }
+    }
+}
+
+/// Prefixes a decoder's errors with its file.
+struct FileDecoder {
+    path: PathBuf,
+    inner: Box<dyn EventDecoder + Send>,
+}
+
+impl EventDecoder for FileDecoder {
+    fn size(&self) -> Option<(u16, u16)> {
+        self.inner.size()
+    }
+
+    fn read_events(&mut self, out: &mut Vec<Event>, max: usize) -> Result<usize> {
+        self.inner
+            .read_events(out, max)
+            .map_err(|e| Error::format(&self.path, e.to_string()))
+    }
+}
+
+/// Serves events already in memory (for formats read whole, such as IJRR text).
+struct MemoryDecoder {
+    size: Option<(u16, u16)>,
+    events: std::vec::IntoIter<Event>,
+}
+
+impl EventDecoder for MemoryDecoder {
+    fn size(&self) -> Option<(u16, u16)> {
+        self.size
+    }
+
+    fn read_events(&mut self, out: &mut Vec<Event>, max: usize) -> Result<usize> {
+        let before = out.len();
+        out.extend(self.events.by_ref().take(max));
+        Ok(out.len() - before)
+    }
+}
+
+/// Opens an event file for streaming: `.aedat4`, `.raw` (EVT 2.0 or 3.0, from its header),
+/// `.csv`, or an IJRR `events.txt` (read whole).
+pub fn open(path: &Path) -> Result<Box<dyn EventDecoder + Send>> {
+    let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let mut reader = BufReader::with_capacity(1 << 16, file);
+    let wrap = |e: Error| Error::format(path, e.to_string());
+    let inner: Box<dyn EventDecoder + Send> = match extension(path).as_str() {
+        "aedat4" => Box::new(aedat4::Reader::new_file(reader).map_err(wrap)?),
+        "raw" => {
+            let header = raw::read_header(&mut reader).map_err(wrap)?;
+            match header.evt {
+                Some(raw::Evt::Evt3) => Box::new(evt3::Decoder::new(reader, &header)),
+                _ => Box::new(evt2::Decoder::new(reader, &header)),
+            }
+        }
+        "csv" => Box::new(csv::Decoder::new(reader)),
+        "txt" => {
+            let rec = ijrr::read_events(path)?;
+            Box::new(MemoryDecoder {
+                size: None,
+                events: rec.events.into_events().into_iter(),
+            })
+        }
+        other => {
+            return Err(Error::format(
+                path,
+                format!(
+                    "unknown event file type '.{other}' (expected .aedat4, .raw, .csv or .txt)"
+                ),
+            ))
+        }
+    };
+    Ok(Box::new(FileDecoder {
+        path: path.to_path_buf(),
+        inner,
+    }))
+}
+
+/// Prefixes an encoder's errors with its file.
+struct FileEncoder {
+    path: PathBuf,
+    inner: Box<dyn EventEncoder + Send>,
+}
+
+impl EventEncoder for FileEncoder {
+    fn write(&mut self, events: &[Event]) -> Result<()> {
+        self.inner
+            .write(events)
+            .map_err(|e| Error::format(&self.path, e.to_string()))
+    }
+
+    fn finish(&mut self) -> Result<()> {
+        self.inner
+            .finish()
+            .map_err(|e| Error::format(&self.path, e.to_string()))
+    }
+}
+
+/// Creates an event file of `format` for a `width x height` sensor.
+pub fn create(
+    path: &Path,
+    format: Format,
+    width: u16,
+    height: u16,
+) -> Result<Box<dyn EventEncoder + Send>> {
+    let file = std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
+    let w = BufWriter::with_capacity(1 << 16, file);
+    let wrap = |e: Error| Error::format(path, e.to_string());
+    let inner: Box<dyn EventEncoder + Send> = match format {
+        Format::Aedat4(c) => Box::new(aedat4::Writer::new(w, width, height, c).map_err(wrap)?),
+        Format::Evt2 => Box::new(evt2::Encoder::new(w, width, height).map_err(wrap)?),
+        Format::Evt3 => Box::new(evt3::Encoder::new(w, width, height).map_err(wrap)?),
+        Format::Csv => Box::new(csv::Encoder::new(w).map_err(wrap)?),
+    };
+    Ok(Box::new(FileEncoder {
+        path: path.to_path_buf(),
+        inner,
+    }))
+}
 
 /// Events read from a file, with the sensor size.
 #[derive(Debug, Clone)]
@@ -55,17 +276,12 @@ fn extension(path: &Path) -> String {
         .to_ascii_lowercase()
 }
 
-/// Reads the events of an `.aedat4`, IJRR `events.txt` or `.csv` file.
+/// Reads all the events of a file [`open`] accepts.
 pub fn read_events(path: &Path) -> Result<Recording> {
-    match extension(path).as_str() {
-        "aedat4" => aedat4::read(path).map(|(rec, _)| rec),
-        "txt" => ijrr::read_events(path),
-        "csv" => csv::read(path),
-        other => Err(Error::format(
-            path,
-            format!("unknown event file type '.{other}' (expected .aedat4, .txt or .csv)"),
-        )),
-    }
+    let mut decoder = open(path)?;
+    let mut events = Vec::new();
+    while decoder.read_events(&mut events, 1 << 16)? > 0 {}
+    Ok(Recording::new(events, decoder.size()))
 }
 
 /// Reads frame times (us, increasing) from an `.aedat4` with APS frames or an IJRR `images.txt`.

@@ -1,0 +1,373 @@
+//! Prophesee RAW EVT 3.0: a `% ` text header (see [`super::raw`]), then little-endian 16-bit
+//! words that update a decoder state (row, time, vector base) and emit events.
+//!
+//! | type (bits 15..12) | word |
+//! |---|---|
+//! | `0x0` EVT_ADDR_Y | bits 10..0 row (bit 11: system type, ignored) |
+//! | `0x2` EVT_ADDR_X | bit 11 polarity, bits 10..0 column: one event at the current row and time |
+//! | `0x3` VECT_BASE_X | bit 11 polarity, bits 10..0 column: base of the next vector words |
+//! | `0x4` VECT_12 | bits 11..0: events at base + i for each set bit i; base += 12 |
+//! | `0x5` VECT_8 | bits 7..0: likewise; base += 8 |
+//! | `0x6` EVT_TIME_LOW | bits 11..0: time bits 11..0 |
+//! | `0x8` EVT_TIME_HIGH | bits 11..0: time bits 23..12 |
+//! | `0x7`, `0xA`, `0xE`, `0xF` | continued, trigger and other words: skipped |
+//!
+//! Time has 24 bits (16.8 s). The decoder unwraps it: a time-high word that goes back by more
+//! than half the range starts the next 2^24 epoch. The encoder writes time-high words at least
+//! every quarter of the range, so any gap comes back exactly.
+//!
+//! The encoder keeps the order of its input. A run of three or more consecutive events with the
+//! same time, row and polarity and increasing columns within 12 of the first is written as
+//! VECT_BASE_X + VECT_12 (two words instead of one per event); further VECT_12 words follow while
+//! the run continues in the next 12 columns.
+
+use std::io::{Read, Write};
+
+use super::raw::{self, Evt};
+use super::{read_words, EventDecoder, EventEncoder};
+use crate::error::{Error, Result};
+use crate::event::Event;
+
+const TIME_BITS: u32 = 24;
+const WHAT: &str = "EVT 3.0 stream";
+
+/// Streams events out of EVT 3.0 words (the part after the header).
+pub struct Decoder<R> {
+    reader: R,
+    size: Option<(u16, u16)>,
+    y: Option<u16>,
+    time_high: Option<u16>,
+    time_low: u16,
+    base_x: u16,
+    base_on: bool,
+    /// Time offset plus the 2^24 epochs passed.
+    base_t: i64,
+    word: u64,
+    buf: Vec<u8>,
+}
+
+impl<R: Read> Decoder<R> {
+    /// A decoder over the words after the header; `header` gives the size and time offset.
+    pub fn new(reader: R, header: &raw::Header) -> Self {
+        Decoder {
+            reader,
+            size: header.size,
+            y: None,
+            time_high: None,
+            time_low: 0,
+            base_x: 0,
+            base_on: false,
+            base_t: header.time_offset,
+            word: 0,
+            buf: vec![0; 16384],
+        }
+    }
+
+    fn time(&self) -> Option<i64> {
+        let high = self.time_high? as i64;
+        Some(self.base_t + ((high << 12) | self.time_low as i64))
+    }
+
+    fn vector(&mut self, mask: u16, bits: u16, out: &mut Vec<Event>) {
+        if let (Some(t), Some(y)) = (self.time(), self.y) {
+            let mut m = mask;
+            while m != 0 {
+                let i = m.trailing_zeros() as u16;
+                out.push(Event::new(t, self.base_x + i, y, self.base_on));
+                m &= m - 1;
+            }
+        }
+        self.base_x = (self.base_x + bits) & 0x7FF;
+    }
+}
+
+impl<R: Read> EventDecoder for Decoder<R> {
+    fn size(&self) -> Option<(u16, u16)> {
+        self.size
+    }
+
+    /// Events before the first time-high and row words are skipped; a vector word may add up
+    /// to 11 events beyond `max`.
+    fn read_events(&mut self, out: &mut Vec<Event>, max: usize) -> Result<usize> {
+        let start = out.len();
+        while out.len() - start < max {
+            let want = ((max - (out.len() - start)) * 2).min(self.buf.len());
+            let n = read_words(&mut self.reader, &mut self.buf[..want], 2, self.word, WHAT)?;
+            for i in (0..n).step_by(2) {
+                let w = u16::from_le_bytes([self.buf[i], self.buf[i + 1]]);
+                self.word += 1;
+                let low12 = w & 0xFFF;
+                match w >> 12 {
+                    0x0 => self.y = Some(w & 0x7FF),
+                    0x2 => {
+                        if let (Some(t), Some(y)) = (self.time(), self.y) {
+                            out.push(Event::new(t, w & 0x7FF, y, w & 0x800 != 0));
+                        }
+                    }
+                    0x3 => {
+                        self.base_x = w & 0x7FF;
+                        self.base_on = w & 0x800 != 0;
+                    }
+                    0x4 => self.vector(low12, 12, out),
+                    0x5 => self.vector(w & 0xFF, 8, out),
+                    0x6 => self.time_low = low12,
+                    0x8 => {
+                        if let Some(prev) = self.time_high {
+                            if prev > low12 && prev - low12 > 0x800 {
+                                self.base_t = self.base_t.saturating_add(1 << TIME_BITS);
+                            }
+                        }
+                        self.time_high = Some(low12);
+                    }
+                    _ => {}
+                }
+            }
+            if n < want {
+                break;
+            }
+        }
+        Ok(out.len() - start)
+    }
+}
+
+/// Writes EVT 3.0: the header on the first write, then state-change and event words.
+pub struct Encoder<W: Write> {
+    writer: W,
+    width: u16,
+    height: u16,
+    offset: Option<i64>,
+    /// `(t - offset) >> 12` of the last time-high word, unwrapped.
+    time_high: Option<i64>,
+    time_low: Option<u16>,
+    y: Option<u16>,
+    last_t: i64,
+    words: Vec<u8>,
+}
+
+impl<W: Write> Encoder<W> {
+    /// An encoder for a `width x height` sensor (at most 2048 x 2048).
+    pub fn new(writer: W, width: u16, height: u16) -> Result<Self> {
+        raw::check_size(Evt::Evt3, width, height)?;
+        Ok(Encoder {
+            writer,
+            width,
+            height,
+            offset: None,
+            time_high: None,
+            time_low: None,
+            y: None,
+            last_t: i64::MIN,
+            words: Vec::new(),
+        })
+    }
+
+    fn header(&mut self, first_t: i64) -> Result<i64> {
+        if let Some(offset) = self.offset {
+            return Ok(offset);
+        }
+        let offset = raw::time_offset_for(Evt::Evt3, first_t);
+        raw::write_header(&mut self.writer, Evt::Evt3, self.width, self.height, offset)
+            .map_err(output_error)?;
+        self.offset = Some(offset);
+        Ok(offset)
+    }
+
+    fn word(&mut self, w: u16) {
+        self.words.extend_from_slice(&w.to_le_bytes());
+    }
+
+    fn set_time(&mut self, rel: i64) {
+        let target = rel >> 12;
+        let low = (rel & 0xFFF) as u16;
+        let step = 1i64 << (TIME_BITS - 12 - 2);
+        let changed = match self.time_high {
+            Some(mut high) if high != target => {
+                while target - high > step {
+                    high += step;
+                    self.word(0x8000 | (high & 0xFFF) as u16);
+                }
+                true
+            }
+            Some(_) => false,
+            None => true,
+        };
+        if changed {
+            self.word(0x8000 | (target & 0xFFF) as u16);
+            self.time_high = Some(target);
+        }
+        if changed || self.time_low != Some(low) {
+            self.word(0x6000 | low);
+            self.time_low = Some(low);
+        }
+    }
+
+    /// Flushes and returns the writer.
+    pub fn into_inner(mut self) -> Result<W> {
+        EventEncoder::finish(&mut self)?;
+        Ok(self.writer)
+    }
+}
+
+fn output_error(e: std::io::Error) -> Error {
+    Error::invalid("EVT 3.0 output", e.to_string())
+}
+
+/// Length of the run starting at `events[0]` that vector words can carry, and whether the
+/// first 12 columns hold enough of it to pay off.
+fn run_len(events: &[Event]) -> usize {
+    let first = events[0];
+    let mut n = 1;
+    while n < events.len() {
+        let (p, e) = (events[n - 1], events[n]);
+        if e.t != first.t || e.y != first.y || e.on != first.on || e.x <= p.x {
+            break;
+        }
+        n += 1;
+    }
+    n
+}
+
+impl<W: Write> EventEncoder for Encoder<W> {
+    /// Appends events, which must be in time order and inside the sensor.
+    fn write(&mut self, events: &[Event]) -> Result<()> {
+        let Some(first) = events.first() else {
+            return Ok(());
+        };
+        let offset = self.header(first.t)?;
+        self.words.clear();
+        self.words.reserve(events.len() * 2 + 16);
+        if let Some(e) = events
+            .iter()
+            .find(|e| e.x >= self.width || e.y >= self.height)
+        {
+            return Err(Error::invalid(
+                "pixel",
+                format!(
+                    "({}, {}) is outside the {} x {} sensor",
+                    e.x, e.y, self.width, self.height
+                ),
+            ));
+        }
+        let mut i = 0;
+        while i < events.len() {
+            let e = events[i];
+            if e.t < self.last_t {
+                return Err(Error::invalid(
+                    "event time",
+                    format!("{} us comes before {} us", e.t, self.last_t),
+                ));
+            }
+            self.last_t = e.t;
+            self.set_time(e.t - offset);
+            if self.y != Some(e.y) {
+                self.word(e.y);
+                self.y = Some(e.y);
+            }
+            let pol = (e.on as u16) << 11;
+            let run = &events[i..i + run_len(&events[i..])];
+            let first_block = run.iter().take_while(|r| r.x < e.x + 12).count();
+            if first_block < 3 {
+                self.word(0x2000 | pol | e.x);
+                i += 1;
+                continue;
+            }
+            self.word(0x3000 | pol | e.x);
+            let mut base = e.x;
+            let mut k = 0;
+            while k < run.len() && run[k].x < base + 12 {
+                let mut mask = 0u16;
+                while k < run.len() && run[k].x < base + 12 {
+                    mask |= 1 << (run[k].x - base);
+                    k += 1;
+                }
+                self.word(0x4000 | mask);
+                base += 12;
+            }
+            i += k;
+        }
+        self.writer.write_all(&self.words).map_err(output_error)
+    }
+
+    /// Writes the header if no event came, and flushes.
+    fn finish(&mut self) -> Result<()> {
+        self.header(0)?;
+        self.writer.flush().map_err(output_error)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn encode(events: &[Event], w: u16, h: u16) -> Vec<u8> {
+        let mut enc = Encoder::new(Vec::new(), w, h).unwrap();
+        enc.write(events).unwrap();
+        enc.into_inner().unwrap()
+    }
+
+    fn decode(bytes: &[u8]) -> Vec<Event> {
+        let mut r = std::io::BufReader::new(bytes);
+        let header = raw::read_header(&mut r).unwrap();
+        let mut dec = Decoder::new(r, &header);
+        let mut out = Vec::new();
+        while dec.read_events(&mut out, 777).unwrap() > 0 {}
+        out
+    }
+
+    #[test]
+    fn round_trip_mixed_stream() {
+        let events: Vec<Event> = (0..20_000i64)
+            .map(|i| {
+                Event::new(
+                    i / 3 * 11,
+                    (i * 7 % 1280) as u16,
+                    (i % 720) as u16,
+                    i % 5 < 2,
+                )
+            })
+            .collect();
+        assert_eq!(decode(&encode(&events, 1280, 720)), events);
+    }
+
+    #[test]
+    fn vectors_carry_rows_of_events_in_fewer_words() {
+        // A full row edge: 1280 ON events at one time and row, then OFF events at every
+        // other column, then scattered singles.
+        let mut events: Vec<Event> = (0..1280).map(|x| Event::new(50, x, 3, true)).collect();
+        events.extend((0..640).map(|x| Event::new(50, 2 * x, 3, false)));
+        events.extend((0..50).map(|i| Event::new(60 + i, (i * 13) as u16, 9, false)));
+        let bytes = encode(&events, 1280, 720);
+        assert_eq!(decode(&bytes), events);
+        let header_len = bytes.len() - bytes.rsplit(|b| *b == b'\n').next().unwrap().len();
+        let words = (bytes.len() - header_len) / 2;
+        // 1280 / 12 + 1 words for the ON row, 1280 / 12 + 1 for the OFF row, ~3 per single.
+        assert!(words < 450, "{words} words");
+    }
+
+    #[test]
+    fn spans_past_2_pow_24_us_round_trip() {
+        // An event every 3 s for 2 minutes (several 16.8 s wraps), one gap of exactly 2^24 us,
+        // one of more than half the range, starting at a Unix-epoch time.
+        let t0 = 1_700_000_000_000_000i64;
+        let mut events: Vec<Event> = (0..40)
+            .map(|i| Event::new(t0 + i * 3_000_000 + i, (i % 17) as u16, 4, i % 2 == 0))
+            .collect();
+        let last = events[39].t;
+        events.push(Event::new(last + (1 << 24), 1, 1, true));
+        events.push(Event::new(last + (1 << 24) + (3 << 22) + 5, 2, 2, false));
+        events.push(Event::new(last + (9 << 24), 3, 3, false));
+        assert_eq!(decode(&encode(&events, 64, 64)), events);
+    }
+
+    #[test]
+    fn bad_input_is_an_error() {
+        let mut enc = Encoder::new(Vec::new(), 64, 64).unwrap();
+        enc.write(&[Event::new(10, 0, 0, true)]).unwrap();
+        assert!(enc.write(&[Event::new(9, 0, 0, true)]).is_err());
+        assert!(enc.write(&[Event::new(11, 0, 64, true)]).is_err());
+        assert!(Encoder::new(Vec::new(), 0, 10).is_err());
+        let h = raw::Header::default();
+        let mut dec = Decoder::new(&[0u8, 0x80, 1][..], &h);
+        assert!(dec.read_events(&mut Vec::new(), 10).is_err());
+    }
+}
