@@ -11,7 +11,8 @@
 //! encoder writes `t mod 2^34`; the decoder unwraps: a time-high word that goes back by more than
 //! half the range starts the next 2^34 epoch, so streams longer than 4.8 hours come back as i64.
 //! Across a gap longer than a quarter of the range the encoder writes intermediate time-high
-//! words so that the decoder can follow.
+//! words so that the decoder can follow. An event whose time goes back (a sensor artefact) is
+//! held at the latest time seen, as faery does, so the output is always in time order.
 
 use std::io::{Read, Write};
 
@@ -31,6 +32,8 @@ pub struct Decoder<R> {
     time_high: Option<u32>,
     /// Time offset plus the 2^34 epochs passed.
     base: i64,
+    /// Latest event time decoded.
+    last_t: i64,
     /// Index of the next word, for error messages.
     word: u64,
     buf: Vec<u8>,
@@ -44,6 +47,7 @@ impl<R: Read> Decoder<R> {
             size: header.size,
             time_high: None,
             base: header.time_offset,
+            last_t: i64::MIN,
             word: 0,
             buf: vec![0; 16384],
         }
@@ -67,7 +71,9 @@ impl<R: Read> EventDecoder for Decoder<R> {
                 match w >> 28 {
                     0x0 | 0x1 => {
                         let Some(high) = self.time_high else { continue };
-                        let t = (((high as i64) << 6) | ((w >> 22) & 0x3F) as i64) + self.base;
+                        let t = ((((high as i64) << 6) | ((w >> 22) & 0x3F) as i64) + self.base)
+                            .max(self.last_t);
+                        self.last_t = t;
                         let x = ((w >> 11) & 0x7FF) as u16;
                         let y = (w & 0x7FF) as u16;
                         out.push(Event::new(t, x, y, w >> 28 == 1));

@@ -12,9 +12,16 @@
 //! | `0x8` EVT_TIME_HIGH | bits 11..0: time bits 23..12 |
 //! | `0x7`, `0xA`, `0xE`, `0xF` | continued, trigger and other words: skipped |
 //!
-//! Time has 24 bits (16.8 s). The decoder unwraps it: a time-high word that goes back by more
-//! than half the range starts the next 2^24 epoch. The encoder writes time-high words at least
-//! every quarter of the range, so any gap comes back exactly.
+//! Time has 24 bits (16.8 s). The decoder follows the rules of faery, the reference reader here
+//! (it reads every sample recording the same way):
+//! - time never decreases: a time-low word behind the current time (sensors send a few) leaves
+//!   the time where it is;
+//! - a time-high word is taken if it moves forward by less than 4094 units of 4096 us, or back by
+//!   more than 4094 (a wrap: 4095 to 0 starts the next 2^24 us epoch); it resets time-low to 0;
+//!   other jumps are ignored as glitches.
+//!
+//! The encoder writes time-high words that obey those rules across any gap: forward steps of at
+//! most 2048 units, and every wrap as 4095 then 0, so any span comes back exactly.
 //!
 //! The encoder keeps the order of its input. A run of three or more consecutive events with the
 //! same time, row and polarity and increasing columns within 12 of the first is written as
@@ -29,19 +36,26 @@ use crate::error::{Error, Result};
 use crate::event::Event;
 
 const TIME_BITS: u32 = 24;
+/// A time-high word that moves forward by this much or more is a glitch and is ignored; one that
+/// moves back by more is a wrap into the next 2^24 us epoch (any other step back is ignored).
+const WRAP_STEP: u16 = (1 << 12) - 2;
+/// The encoder's largest forward step between time-high words.
+const MAX_STEP: i64 = 2048;
 const WHAT: &str = "EVT 3.0 stream";
 
 /// Streams events out of EVT 3.0 words (the part after the header).
 pub struct Decoder<R> {
     reader: R,
     size: Option<(u16, u16)>,
-    y: Option<u16>,
-    time_high: Option<u16>,
+    y: u16,
+    time_high: u16,
     time_low: u16,
     base_x: u16,
     base_on: bool,
     /// Time offset plus the 2^24 epochs passed.
     base_t: i64,
+    /// The current time: never decreases.
+    t: i64,
     word: u64,
     buf: Vec<u8>,
 }
@@ -52,30 +66,49 @@ impl<R: Read> Decoder<R> {
         Decoder {
             reader,
             size: header.size,
-            y: None,
-            time_high: None,
+            y: 0,
+            time_high: 0,
             time_low: 0,
             base_x: 0,
             base_on: false,
             base_t: header.time_offset,
+            t: header.time_offset,
             word: 0,
             buf: vec![0; 16384],
         }
     }
 
-    fn time(&self) -> Option<i64> {
-        let high = self.time_high? as i64;
-        Some(self.base_t + ((high << 12) | self.time_low as i64))
+    fn update_time(&mut self) {
+        let t = self.base_t + (((self.time_high as i64) << 12) | self.time_low as i64);
+        self.t = self.t.max(t);
+    }
+
+    fn time_high(&mut self, high: u16) {
+        let prev = self.time_high;
+        let accept = if high > prev {
+            high - prev < WRAP_STEP
+        } else if high < prev {
+            let wrapped = prev - high > WRAP_STEP;
+            if wrapped {
+                self.base_t = self.base_t.saturating_add(1 << TIME_BITS);
+            }
+            wrapped
+        } else {
+            false
+        };
+        if accept {
+            self.time_high = high;
+            self.time_low = 0;
+            self.update_time();
+        }
     }
 
     fn vector(&mut self, mask: u16, bits: u16, out: &mut Vec<Event>) {
-        if let (Some(t), Some(y)) = (self.time(), self.y) {
-            let mut m = mask;
-            while m != 0 {
-                let i = m.trailing_zeros() as u16;
-                out.push(Event::new(t, self.base_x + i, y, self.base_on));
-                m &= m - 1;
-            }
+        let mut m = mask;
+        while m != 0 {
+            let i = m.trailing_zeros() as u16;
+            out.push(Event::new(self.t, self.base_x + i, self.y, self.base_on));
+            m &= m - 1;
         }
         self.base_x = (self.base_x + bits) & 0x7FF;
     }
@@ -86,8 +119,7 @@ impl<R: Read> EventDecoder for Decoder<R> {
         self.size
     }
 
-    /// Events before the first time-high and row words are skipped; a vector word may add up
-    /// to 11 events beyond `max`.
+    /// A vector word may add up to 11 events beyond `max`.
     fn read_events(&mut self, out: &mut Vec<Event>, max: usize) -> Result<usize> {
         let start = out.len();
         while out.len() - start < max {
@@ -98,27 +130,19 @@ impl<R: Read> EventDecoder for Decoder<R> {
                 self.word += 1;
                 let low12 = w & 0xFFF;
                 match w >> 12 {
-                    0x0 => self.y = Some(w & 0x7FF),
-                    0x2 => {
-                        if let (Some(t), Some(y)) = (self.time(), self.y) {
-                            out.push(Event::new(t, w & 0x7FF, y, w & 0x800 != 0));
-                        }
-                    }
+                    0x0 => self.y = w & 0x7FF,
+                    0x2 => out.push(Event::new(self.t, w & 0x7FF, self.y, w & 0x800 != 0)),
                     0x3 => {
                         self.base_x = w & 0x7FF;
                         self.base_on = w & 0x800 != 0;
                     }
                     0x4 => self.vector(low12, 12, out),
                     0x5 => self.vector(w & 0xFF, 8, out),
-                    0x6 => self.time_low = low12,
-                    0x8 => {
-                        if let Some(prev) = self.time_high {
-                            if prev > low12 && prev - low12 > 0x800 {
-                                self.base_t = self.base_t.saturating_add(1 << TIME_BITS);
-                            }
-                        }
-                        self.time_high = Some(low12);
+                    0x6 => {
+                        self.time_low = low12;
+                        self.update_time();
                     }
+                    0x8 => self.time_high(low12),
                     _ => {}
                 }
             }
@@ -179,22 +203,33 @@ impl<W: Write> Encoder<W> {
     fn set_time(&mut self, rel: i64) {
         let target = rel >> 12;
         let low = (rel & 0xFFF) as u16;
-        let step = 1i64 << (TIME_BITS - 12 - 2);
-        let changed = match self.time_high {
-            Some(mut high) if high != target => {
-                while target - high > step {
-                    high += step;
-                    self.word(0x8000 | (high & 0xFFF) as u16);
-                }
-                true
+        let mut high = match self.time_high {
+            Some(h) => h,
+            None => {
+                // Start at the epoch's 0, which every reader accepts as a first word.
+                let start = target & !0xFFF;
+                self.word(0x8000);
+                start
             }
-            Some(_) => false,
-            None => true,
         };
-        if changed {
-            self.word(0x8000 | (target & 0xFFF) as u16);
-            self.time_high = Some(target);
+        let changed = high != target;
+        while high != target {
+            let epoch_end = high | 0xFFF;
+            let stop = target.min(epoch_end);
+            while stop - high > MAX_STEP {
+                high += MAX_STEP;
+                self.word(0x8000 | (high & 0xFFF) as u16);
+            }
+            if high != stop {
+                high = stop;
+                self.word(0x8000 | (high & 0xFFF) as u16);
+            }
+            if high != target {
+                high += 1;
+                self.word(0x8000);
+            }
         }
+        self.time_high = Some(high);
         if changed || self.time_low != Some(low) {
             self.word(0x6000 | low);
             self.time_low = Some(low);
@@ -357,6 +392,25 @@ mod tests {
         events.push(Event::new(last + (1 << 24) + (3 << 22) + 5, 2, 2, false));
         events.push(Event::new(last + (9 << 24), 3, 3, false));
         assert_eq!(decode(&encode(&events, 64, 64)), events);
+    }
+
+    #[test]
+    fn time_never_goes_back_and_glitches_are_ignored() {
+        // y=5; high 2; low 0x32b; event; low 0x320 (behind); event; high 4000 (a forward
+        // glitch of 3998 is taken: under 4094); event; high 10 (back by 3990: ignored); event.
+        let words: [u16; 9] = [
+            0x0005, 0x8002, 0x632b, 0x2001, 0x6320, 0x2002, 0x8FA0, 0x2003, 0x800A,
+        ];
+        let mut bytes: Vec<u8> = words.iter().flat_map(|w| w.to_le_bytes()).collect();
+        bytes.extend_from_slice(&0x2004u16.to_le_bytes());
+        let mut out = Vec::new();
+        Decoder::new(&bytes[..], &raw::Header::default())
+            .read_events(&mut out, 100)
+            .unwrap();
+        let t: Vec<i64> = out.iter().map(|e| e.t).collect();
+        let a = (2 << 12) | 0x32b;
+        assert_eq!(t, vec![a, a, 4000 << 12, 4000 << 12]);
+        assert!(out.iter().all(|e| e.y == 5));
     }
 
     #[test]

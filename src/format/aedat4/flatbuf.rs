@@ -291,7 +291,7 @@ pub fn build_io_header(
 /// One entry of the file data table.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct DataDefinition {
-    /// File position of the packet header.
+    /// File position of the packet's data (just after its 8-byte header).
     pub byte_offset: i64,
     /// The packet's stream.
     pub stream_id: i32,

@@ -122,8 +122,9 @@ impl Compression {
             }
             Compression::Zstd | Compression::ZstdHigh => {
                 let level = if self == Compression::Zstd { 3 } else { 19 };
-                zstd::stream::copy_encode(data, &mut *out, level)
-                    .map_err(|e| fail(e.to_string()))?;
+                // One-shot compression records the content size in the frame header, which
+                // dv-processing requires.
+                *out = zstd::bulk::compress(data, level).map_err(|e| fail(e.to_string()))?;
             }
         }
         Ok(())
@@ -621,7 +622,7 @@ impl<W: Write + Seek> Writer<W> {
             .write_all(&self.compressed)
             .map_err(output_error)?;
         self.table.push(DataDefinition {
-            byte_offset: self.position as i64,
+            byte_offset: self.position as i64 + 8,
             stream_id: 0,
             size,
             num_elements: self.pending.len() as i64,

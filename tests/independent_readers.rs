@@ -1,0 +1,186 @@
+//! Third-party readers (faery, aedat, dv-processing from PyPI) read back what v2ce writes.
+//!
+//! The Python side is `tests/python/crosscheck.py`, run with the interpreter in `V2CE_PYTHON`
+//! or the project's `.venv` (which `.ci/run` creates). Without one these tests print why they
+//! skip, unless `V2CE_REQUIRE_PYTHON` is set (as in CI), where a missing interpreter fails.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use v2ce::event::Event;
+use v2ce::format::{self, csv, raw, Compression, Format};
+
+fn python() -> Option<PathBuf> {
+    let p = std::env::var_os("V2CE_PYTHON")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join(".venv/bin/python"));
+    if p.exists() {
+        return Some(p);
+    }
+    if std::env::var_os("V2CE_REQUIRE_PYTHON").is_some() {
+        panic!(
+            "V2CE_REQUIRE_PYTHON is set but there is no interpreter at {}",
+            p.display()
+        );
+    }
+    None
+}
+
+macro_rules! python_or_skip {
+    ($test:literal) => {
+        match python() {
+            Some(p) => p,
+            None => {
+                eprintln!(
+                    "SKIPPED {}: no Python venv with faery/aedat/dv-processing (run .ci/run or set V2CE_PYTHON)",
+                    $test
+                );
+                return;
+            }
+        }
+    };
+}
+
+fn script() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/crosscheck.py")
+}
+
+fn temp_dir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("v2ce-{name}-{}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// Runs `crosscheck.py file READER PATH EXPECTED [OFFSET]` and asserts an exact match.
+fn check_file(py: &Path, reader: &str, path: &Path, expected: &Path, offset: i64) {
+    let out = Command::new(py)
+        .arg(script())
+        .args(["file", reader])
+        .arg(path)
+        .arg(expected)
+        .arg(offset.to_string())
+        .output()
+        .unwrap();
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    eprintln!("{reader} {}: {}", path.display(), text.trim());
+    assert!(
+        out.status.success(),
+        "{reader} on {}: {text}",
+        path.display()
+    );
+}
+
+/// A test stream: a sweeping bar from a Unix-epoch start (so EVT files need their offset).
+fn stream() -> (u16, u16, Vec<Event>) {
+    let rec = v2ce::synthetic::sweeping_bar(128, 96, 500_000, 3);
+    let t0 = 1_700_000_000_000_000;
+    let events = rec
+        .events
+        .events()
+        .iter()
+        .map(|e| Event::new(e.t + t0, e.x, e.y, e.on))
+        .collect();
+    (rec.width, rec.height, events)
+}
+
+fn write_all(path: &Path, format: Format, w: u16, h: u16, events: &[Event]) {
+    let mut enc = format::create(path, format, w, h).unwrap();
+    for chunk in events.chunks(5000) {
+        enc.write(chunk).unwrap();
+    }
+    enc.finish().unwrap();
+}
+
+fn offset(format: Format, events: &[Event]) -> i64 {
+    let first = events.first().map_or(0, |e| e.t);
+    match format {
+        Format::Evt2 => raw::time_offset_for(raw::Evt::Evt2, first),
+        Format::Evt3 => raw::time_offset_for(raw::Evt::Evt3, first),
+        _ => 0,
+    }
+}
+
+#[test]
+fn files_we_write_are_read_back_by_faery_aedat_and_dv_processing() {
+    let py = python_or_skip!("files_we_write_are_read_back_by_faery_aedat_and_dv_processing");
+    let dir = temp_dir("readers");
+    let (w, h, events) = stream();
+    assert!(events.len() > 10_000);
+    // A second, sparse stream spanning several EVT 3.0 wraps and one EVT 2.0 wrap.
+    let sparse: Vec<Event> = (0..300i64)
+        .map(|i| {
+            Event::new(
+                i * 70_000_000 + i * 13,
+                (i % 128) as u16,
+                (i % 96) as u16,
+                i % 2 == 0,
+            )
+        })
+        .collect();
+    assert!(sparse[299].t > 1 << 34);
+    for (name, events) in [("bar", &events), ("sparse", &sparse)] {
+        let expected = dir.join(format!("{name}-expected.csv"));
+        csv::write(&expected, events).unwrap();
+        for (file, format, readers) in [
+            (
+                "lz4.aedat4",
+                Format::Aedat4(Compression::Lz4),
+                &["faery", "aedat", "dv"][..],
+            ),
+            (
+                "zstd.aedat4",
+                Format::Aedat4(Compression::Zstd),
+                &["faery", "aedat", "dv"],
+            ),
+            (
+                "none.aedat4",
+                Format::Aedat4(Compression::None),
+                &["faery", "aedat", "dv"],
+            ),
+            ("e2.raw", Format::Evt2, &["faery"]),
+            ("e3.raw", Format::Evt3, &["faery"]),
+            ("e.csv", Format::Csv, &["faery"]),
+        ] {
+            let path = dir.join(format!("{name}-{file}"));
+            write_all(&path, format, w, h, events);
+            for reader in readers {
+                check_file(&py, reader, &path, &expected, offset(format, events));
+            }
+        }
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn our_decoders_agree_with_faery_on_every_recording() {
+    let py = python_or_skip!("our_decoders_agree_with_faery_on_every_recording");
+    let data = std::env::var_os("V2CE_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data"));
+    if !data.is_dir() {
+        eprintln!(
+            "SKIPPED our_decoders_agree_with_faery_on_every_recording: no recordings at {}",
+            data.display()
+        );
+        return;
+    }
+    let dir = temp_dir("faery-agree");
+    for name in [
+        "davis346/davis346.aedat4",
+        "dvxplorer/data_sample.aedat4",
+        "prophesee/sparklers.raw",
+        "prophesee/evt2_sample.raw",
+        "prophesee/evt3_sample.raw",
+    ] {
+        let path = data.join(name);
+        let rec = format::read_events(&path).unwrap();
+        let ours = dir.join("ours.csv");
+        csv::write(&ours, rec.events.events()).unwrap();
+        check_file(&py, "faery", &path, &ours, 0);
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -1,0 +1,189 @@
+"""Independent readers check what v2ce writes and sends.
+
+Run by the Rust integration tests (tests/independent_readers.rs) with the project's virtual
+environment; each mode compares what a third-party reader gets with an expected CSV
+(`t_us,x,y,on`) and exits 0 on an exact match, 1 on a mismatch, 2 on a timeout.
+
+    crosscheck.py file READER PATH EXPECTED.csv [T_OFFSET]   READER: faery | aedat | dv
+    crosscheck.py udp FORMAT PORT EXPECTED.csv WIDTH HEIGHT    FORMAT: t64_x16_y16_on8 |
+                                                               t32_x16_y15_on1 | spif
+    crosscheck.py tcp PORT EXPECTED.csv
+
+`udp` and `tcp` print READY once listening (udp) or connected (tcp).
+"""
+
+import os
+import socket
+import sys
+import threading
+
+import numpy as np
+
+
+def expected(path):
+    data = np.loadtxt(path, delimiter=",", skiprows=1, dtype=np.int64, ndmin=2)
+    if data.size == 0:
+        return np.zeros((0, 4), dtype=np.int64)
+    return data
+
+
+def columns(t, x, y, on):
+    return np.stack(
+        [np.asarray(t, np.int64), np.asarray(x, np.int64), np.asarray(y, np.int64),
+         np.asarray(on, np.int64)],
+        axis=1,
+    )
+
+
+def compare(got, want, what):
+    if got.shape == want.shape and np.array_equal(got, want):
+        print(f"OK {what}: {len(got)} events identical")
+        return 0
+    print(f"MISMATCH {what}: got {len(got)} events, expected {len(want)}")
+    n = min(len(got), len(want))
+    bad = np.nonzero(np.any(got[:n] != want[:n], axis=1))[0]
+    if len(bad):
+        i = bad[0]
+        print(f"first difference at {i}: got {got[i].tolist()} expected {want[i].tolist()}")
+    return 1
+
+
+def read_faery(path):
+    import faery
+
+    arr = faery.events_stream_from_file(path).to_array()
+    return columns(arr["t"], arr["x"], arr["y"], arr["on"])
+
+
+def read_aedat(path):
+    import aedat
+
+    parts = []
+    for packet in aedat.Decoder(path):
+        if "events" in packet:
+            e = packet["events"]
+            parts.append(columns(e["t"], e["x"], e["y"], e["on"]))
+    return np.concatenate(parts) if parts else np.zeros((0, 4), np.int64)
+
+
+def read_dv(path):
+    import dv_processing as dv
+
+    rec = dv.io.MonoCameraRecording(path)
+    parts = []
+    while rec.isRunning():
+        batch = rec.getNextEventBatch()
+        if batch is None:
+            break
+        if len(batch) > 0:
+            e = batch.numpy()
+            parts.append(columns(e["timestamp"], e["x"], e["y"], e["polarity"]))
+    return np.concatenate(parts) if parts else np.zeros((0, 4), np.int64)
+
+
+def watchdog(seconds, what):
+    def fire():
+        print(f"TIMEOUT {what} after {seconds} s", flush=True)
+        os._exit(2)
+
+    timer = threading.Timer(seconds, fire)
+    timer.daemon = True
+    timer.start()
+
+
+def decode_spif(datagram):
+    """SPIF words, little-endian: bit 31 set = no timestamp word follows; bits 30..16 x;
+    bit 15 polarity; bits 14..0 y. With bit 31 clear, the next word is the time (u32 us)."""
+    words = np.frombuffer(datagram[: len(datagram) // 4 * 4], dtype="<u4")
+    out = []
+    i = 0
+    while i < len(words):
+        w = int(words[i])
+        t = -1
+        if not w >> 31:
+            t = int(words[i + 1])
+            i += 1
+        out.append((t, (w >> 16) & 0x7FFF, w & 0x7FFF, (w >> 15) & 1))
+        i += 1
+    return out
+
+
+def udp(fmt, port, want, width, height):
+    watchdog(30, f"udp {fmt}")
+    if fmt == "spif":
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.bind(("127.0.0.1", port))
+        print("READY", flush=True)
+        rows = []
+        largest = 0
+        while len(rows) < len(want):
+            datagram = sock.recv(65536)
+            largest = max(largest, len(datagram))
+            rows.extend(decode_spif(datagram))
+        print(f"largest datagram {largest} bytes")
+        got = np.array(rows, dtype=np.int64).reshape(-1, 4)
+        if (got[:, 0] >= 0).all():
+            want = want.copy()
+            want[:, 0] %= 1 << 32
+        else:
+            got[:, 0] = want[: len(got), 0]  # no timestamps sent: compare addresses only
+        return compare(got, want, "spif over UDP")
+    import faery
+
+    decoder = faery.events_stream_from_udp((width, height), ("127.0.0.1", port), format=fmt)
+    parts = []
+    count = 0
+    print("READY", flush=True)
+    for packet in decoder:
+        parts.append(columns(packet["t"], packet["x"], packet["y"], packet["on"]))
+        count += len(packet)
+        if count >= len(want):
+            break
+    got = np.concatenate(parts)
+    if fmt == "t32_x16_y15_on1":
+        want = want.copy()
+        want[:, 0] %= 1 << 32
+        got[:, 0] %= 1 << 32
+    return compare(got, want, f"faery {fmt} over UDP")
+
+
+def tcp(port, want):
+    import dv_processing as dv
+
+    watchdog(30, "tcp")
+    reader = dv.io.NetworkReader("127.0.0.1", port)
+    print("READY", flush=True)
+    size = reader.getEventResolution()
+    parts = []
+    count = 0
+    while count < len(want) and reader.isRunning():
+        batch = reader.getNextEventBatch()
+        if batch is None or len(batch) == 0:
+            continue
+        e = batch.numpy()
+        parts.append(columns(e["timestamp"], e["x"], e["y"], e["polarity"]))
+        count += len(batch)
+    print(f"resolution {size}")
+    got = np.concatenate(parts) if parts else np.zeros((0, 4), np.int64)
+    return compare(got, want, "dv_processing NetworkReader over TCP")
+
+
+def main(argv):
+    mode = argv[1]
+    if mode == "file":
+        reader, path, want = argv[2], argv[3], expected(argv[4])
+        offset = int(argv[5]) if len(argv) > 5 else 0
+        watchdog(120, f"{reader} reading {path}")
+        got = {"faery": read_faery, "aedat": read_aedat, "dv": read_dv}[reader](path)
+        got[:, 0] += offset
+        return compare(got, want, f"{reader} reading {os.path.basename(path)}")
+    if mode == "udp":
+        return udp(argv[2], int(argv[3]), expected(argv[4]), int(argv[5]), int(argv[6]))
+    if mode == "tcp":
+        return tcp(int(argv[2]), expected(argv[3]))
+    print(f"unknown mode {mode}")
+    return 3
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv))
