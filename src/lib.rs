@@ -15,6 +15,7 @@ pub mod interval;
 pub mod metrics;
 pub mod stage2;
 pub mod synthetic;
+pub mod transcode;
 pub mod voxel;
 
 pub use error::{Error, Result};

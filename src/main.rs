@@ -28,6 +28,36 @@ enum Command {
     /// Score simulated events against real recordings.
     #[command(subcommand)]
     Eval(Eval),
+    /// Convert an event file to another format, streaming (.aedat4, .raw, .csv; IJRR .txt in).
+    Transcode(TranscodeArgs),
+    /// Print an event file's sensor size, event count, time span, rate and ON ratio.
+    Info(InfoArgs),
+}
+
+#[derive(Args)]
+struct TranscodeArgs {
+    /// Input: .aedat4, .raw (EVT 2.0 or 3.0, from its header), .csv, or IJRR events.txt.
+    input: PathBuf,
+    /// Output; its extension picks the format: .aedat4, .raw, .csv.
+    output: PathBuf,
+    /// EVT version of a .raw output.
+    #[arg(long, value_parser = ["2", "3"], default_value = "3")]
+    evt: String,
+    /// Packet compression of an .aedat4 output: lz4, zstd, zstd-high or none.
+    #[arg(long, default_value = "lz4")]
+    compression: String,
+    /// Sensor size WIDTHxHEIGHT to write (default: the input's, or the events' extent).
+    #[arg(long, value_name = "WxH")]
+    size: Option<String>,
+}
+
+#[derive(Args)]
+struct InfoArgs {
+    /// An event file: .aedat4, .raw, .csv or IJRR events.txt.
+    file: PathBuf,
+    /// Print one JSON object.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Subcommand)]
@@ -73,6 +103,8 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Eval(Eval::Stage2(args)) => eval_stage2(args),
+        Command::Transcode(args) => transcode(args),
+        Command::Info(args) => info(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -81,6 +113,55 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+fn parse_size(text: &str) -> Result<(u16, u16)> {
+    let bad = || {
+        Error::invalid(
+            "size",
+            format!("'{text}' (expected WIDTHxHEIGHT, e.g. 346x260)"),
+        )
+    };
+    let (w, h) = text.split_once(['x', 'X']).ok_or_else(bad)?;
+    match (w.trim().parse::<u16>(), h.trim().parse::<u16>()) {
+        (Ok(w), Ok(h)) if w > 0 && h > 0 => Ok((w, h)),
+        _ => Err(bad()),
+    }
+}
+
+fn transcode(args: TranscodeArgs) -> Result<()> {
+    let evt = args.evt.parse::<u8>().ok();
+    let compression = format::Compression::from_name(&args.compression)?;
+    let fmt = format::Format::for_output(&args.output, evt, compression)?;
+    let size = args.size.as_deref().map(parse_size).transpose()?;
+    let started = std::time::Instant::now();
+    let report = v2ce::transcode::transcode(&args.input, &args.output, fmt, size)?;
+    let secs = started.elapsed().as_secs_f64();
+    eprintln!(
+        "v2ce: wrote {} events ({} x {}, {}) to {} in {:.2} s",
+        report.events,
+        report.size.0,
+        report.size.1,
+        fmt.name(),
+        args.output.display(),
+        secs
+    );
+    Ok(())
+}
+
+fn info(args: InfoArgs) -> Result<()> {
+    let s = v2ce::transcode::summarize(&args.file)?;
+    let mut out = std::io::stdout().lock();
+    let text = if args.json {
+        let mut v = serde_json::to_value(&s).map_err(|e| Error::invalid("json", e.to_string()))?;
+        v["span_us"] = s.span_us().into();
+        v["rate_hz"] = s.rate_hz().into();
+        v["on_ratio"] = s.on_ratio().into();
+        v.to_string()
+    } else {
+        format!("{}\n{s}", args.file.display())
+    };
+    writeln!(out, "{text}").map_err(|e| Error::io("stdout", e))
 }
 
 fn is_aedat4(path: &Path) -> bool {

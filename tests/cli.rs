@@ -142,3 +142,72 @@ fn bad_input_gives_one_clear_error() {
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+#[test]
+fn transcode_and_info() {
+    let dir = temp_dir("transcode");
+    let mut csv = String::from("t_us,x,y,on\n");
+    for i in 0..5000 {
+        csv.push_str(&format!(
+            "{},{},{},{}\n",
+            100 + i * 10,
+            i % 50,
+            i % 40,
+            i % 2
+        ));
+    }
+    std::fs::write(dir.join("in.csv"), &csv).unwrap();
+    let run = |args: &[&std::ffi::OsStr]| {
+        let out = v2ce().args(args).output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr).to_string();
+        assert!(out.status.success(), "{args:?}: {err}");
+        String::from_utf8_lossy(&out.stdout).to_string()
+    };
+    let p = |name: &str| dir.join(name).into_os_string();
+    run(&[
+        "transcode".as_ref(),
+        &p("in.csv"),
+        &p("a.raw"),
+        "--evt".as_ref(),
+        "2".as_ref(),
+    ]);
+    run(&[
+        "transcode".as_ref(),
+        &p("a.raw"),
+        &p("b.aedat4"),
+        "--compression=zstd".as_ref(),
+    ]);
+    run(&[
+        "transcode".as_ref(),
+        &p("b.aedat4"),
+        &p("c.raw"),
+        "--size=64x48".as_ref(),
+    ]);
+    run(&["transcode".as_ref(), &p("c.raw"), &p("d.csv")]);
+    assert_eq!(std::fs::read_to_string(dir.join("d.csv")).unwrap(), csv);
+    let info: serde_json::Value =
+        serde_json::from_str(&run(&["info".as_ref(), &p("c.raw"), "--json".as_ref()])).unwrap();
+    assert_eq!(info["events"], 5000);
+    assert_eq!(info["size"], serde_json::json!([64, 48]));
+    assert_eq!(info["first_t"], 100);
+    assert_eq!(info["on_ratio"], 0.5);
+    let text = run(&["info".as_ref(), &p("a.raw")]);
+    assert!(text.contains("sensor size  50 x 40"), "{text}");
+    // Bad input: one clear line, no panic.
+    std::fs::write(dir.join("bad.raw"), b"% evt 3.0\n% end\n\x01").unwrap();
+    for (args, needle) in [
+        (vec![p("bad.raw"), p("x.csv")], "truncated"),
+        (vec![p("in.csv"), p("x.mp4")], ".mp4"),
+        (vec![p("in.csv"), p("x.raw"), "--size=0x3".into()], "size"),
+        (vec![p("missing.csv"), p("x.csv")], "missing.csv"),
+    ] {
+        let out = v2ce().arg("transcode").args(&args).output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !out.status.success() && err.contains(needle),
+            "{args:?}: {err}"
+        );
+        assert!(!err.contains("panicked"), "{args:?}: {err}");
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}

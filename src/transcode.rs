@@ -1,0 +1,235 @@
+//! Streaming conversion between event file formats, and a summary of an event file.
+//!
+//! Both read the input in chunks of [`CHUNK`] events, so memory stays flat for files of any
+//! length (an AEDAT 4.0 output keeps one 32-byte data-table entry per 4096 events).
+
+use std::path::Path;
+
+use crate::error::{Error, Result};
+use crate::event::Event;
+use crate::format::{self, Format};
+
+/// Events read per step.
+pub const CHUNK: usize = 1 << 16;
+
+/// What [`transcode`] did.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TranscodeReport {
+    /// Events written.
+    pub events: u64,
+    /// The sensor size written.
+    pub size: (u16, u16),
+}
+
+/// The sensor size to write: `size`, else the input's, else one more than the largest column
+/// and row in the input (found by a first streaming pass).
+fn output_size(input: &Path, size: Option<(u16, u16)>) -> Result<(u16, u16)> {
+    if let Some(s) = size {
+        return Ok(s);
+    }
+    let mut decoder = format::open(input)?;
+    if let Some(s) = decoder.size() {
+        return Ok(s);
+    }
+    let (mut w, mut h) = (0u16, 0u16);
+    let mut buf = Vec::with_capacity(CHUNK);
+    loop {
+        buf.clear();
+        if decoder.read_events(&mut buf, CHUNK)? == 0 {
+            break;
+        }
+        for e in &buf {
+            w = w.max(e.x);
+            h = h.max(e.y);
+        }
+    }
+    Ok((w.saturating_add(1), h.saturating_add(1)))
+}
+
+/// Converts `input` to `output` in `format`, streaming. `size` overrides the sensor size.
+pub fn transcode(
+    input: &Path,
+    output: &Path,
+    format: Format,
+    size: Option<(u16, u16)>,
+) -> Result<TranscodeReport> {
+    if same_file(input, output) {
+        return Err(Error::invalid(
+            "output file",
+            format!("{} is the input file", output.display()),
+        ));
+    }
+    let size = output_size(input, size)?;
+    let mut decoder = format::open(input)?;
+    let mut encoder = format::create(output, format, size.0, size.1)?;
+    let mut buf = Vec::with_capacity(CHUNK + 16);
+    let mut events = 0u64;
+    loop {
+        buf.clear();
+        if decoder.read_events(&mut buf, CHUNK)? == 0 {
+            break;
+        }
+        encoder.write(&buf)?;
+        events += buf.len() as u64;
+    }
+    encoder.finish()?;
+    Ok(TranscodeReport { events, size })
+}
+
+fn same_file(a: &Path, b: &Path) -> bool {
+    match (a.canonicalize(), b.canonicalize()) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => false,
+    }
+}
+
+/// A summary of an event file.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct Summary {
+    /// Sensor width and height from the file, when it says.
+    pub size: Option<(u16, u16)>,
+    /// One more than the largest column and row seen.
+    pub extent: (u16, u16),
+    /// Number of events.
+    pub events: u64,
+    /// ON events.
+    pub on: u64,
+    /// First and last event time (us), when there are events.
+    pub first_t: Option<i64>,
+    /// Last event time (us).
+    pub last_t: Option<i64>,
+}
+
+impl Summary {
+    /// `last_t - first_t` in us (0 without events).
+    pub fn span_us(&self) -> i64 {
+        match (self.first_t, self.last_t) {
+            (Some(a), Some(b)) => b.saturating_sub(a),
+            _ => 0,
+        }
+    }
+
+    /// Mean event rate over the span, in events per second (0 for a span of 0).
+    pub fn rate_hz(&self) -> f64 {
+        match self.span_us() {
+            0 => 0.0,
+            s => self.events as f64 / (s as f64 * 1e-6),
+        }
+    }
+
+    /// Share of ON events (0 without events).
+    pub fn on_ratio(&self) -> f64 {
+        if self.events == 0 {
+            0.0
+        } else {
+            self.on as f64 / self.events as f64
+        }
+    }
+}
+
+impl std::fmt::Display for Summary {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self.size {
+            Some((w, h)) => writeln!(f, "sensor size  {w} x {h}")?,
+            None => writeln!(
+                f,
+                "sensor size  not in the file; events fit {} x {}",
+                self.extent.0, self.extent.1
+            )?,
+        }
+        writeln!(f, "events       {}", self.events)?;
+        match (self.first_t, self.last_t) {
+            (Some(a), Some(b)) => writeln!(
+                f,
+                "time span    {:.6} s ({a} .. {b} us)",
+                (b - a) as f64 * 1e-6
+            )?,
+            _ => writeln!(f, "time span    -")?,
+        }
+        writeln!(f, "event rate   {:.0} ev/s", self.rate_hz())?;
+        write!(f, "ON ratio     {:.4}", self.on_ratio())
+    }
+}
+
+/// Reads an event file through once and summarizes it.
+pub fn summarize(path: &Path) -> Result<Summary> {
+    let mut decoder = format::open(path)?;
+    let mut s = Summary {
+        size: decoder.size(),
+        extent: (0, 0),
+        events: 0,
+        on: 0,
+        first_t: None,
+        last_t: None,
+    };
+    let mut buf: Vec<Event> = Vec::with_capacity(CHUNK + 16);
+    loop {
+        buf.clear();
+        if decoder.read_events(&mut buf, CHUNK)? == 0 {
+            break;
+        }
+        for e in &buf {
+            s.extent.0 = s.extent.0.max(e.x.saturating_add(1));
+            s.extent.1 = s.extent.1.max(e.y.saturating_add(1));
+            s.on += e.on as u64;
+            s.first_t = Some(s.first_t.map_or(e.t, |t| t.min(e.t)));
+            s.last_t = Some(s.last_t.map_or(e.t, |t| t.max(e.t)));
+        }
+        s.events += buf.len() as u64;
+    }
+    Ok(s)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::format::csv;
+
+    #[test]
+    fn transcode_chain_and_summary() {
+        let dir = std::env::temp_dir().join(format!("v2ce-transcode-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let events: Vec<Event> = (0..200_000i64)
+            .map(|i| {
+                Event::new(
+                    1_000 + i * 3,
+                    (i % 300) as u16,
+                    (i % 200) as u16,
+                    i % 4 == 0,
+                )
+            })
+            .collect();
+        let src = dir.join("in.csv");
+        csv::write(&src, &events).unwrap();
+        let a = dir.join("a.aedat4");
+        let b = dir.join("b.raw");
+        let c = dir.join("c.raw");
+        let d = dir.join("d.csv");
+        let r = transcode(&src, &a, Format::Aedat4(format::Compression::Zstd), None).unwrap();
+        assert_eq!(
+            r,
+            TranscodeReport {
+                events: 200_000,
+                size: (300, 200)
+            }
+        );
+        transcode(&a, &b, Format::Evt3, None).unwrap();
+        transcode(&b, &c, Format::Evt2, Some((640, 480))).unwrap();
+        transcode(&c, &d, Format::Csv, None).unwrap();
+        assert_eq!(
+            format::read_events(&d).unwrap().events.events(),
+            &events[..]
+        );
+        let s = summarize(&c).unwrap();
+        assert_eq!(s.size, Some((640, 480)));
+        assert_eq!((s.events, s.on, s.extent), (200_000, 50_000, (300, 200)));
+        assert_eq!(
+            (s.first_t, s.last_t),
+            (Some(1_000), Some(1_000 + 199_999 * 3))
+        );
+        assert!((s.rate_hz() - 200_000.0 / 0.599_997).abs() < 1.0);
+        assert!(s.to_string().contains("ON ratio     0.2500"));
+        assert!(transcode(&d, &d, Format::Csv, None).is_err());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}
