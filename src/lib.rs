@@ -13,6 +13,7 @@ pub mod event;
 pub mod format;
 pub mod interval;
 pub mod metrics;
+pub mod sink;
 pub mod stage2;
 pub mod synthetic;
 pub mod transcode;

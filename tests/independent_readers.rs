@@ -184,3 +184,119 @@ fn our_decoders_agree_with_faery_on_every_recording() {
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// Starts `crosscheck.py ARGS` and waits for its READY line.
+fn start_receiver(py: &Path, args: &[String]) -> std::process::Child {
+    use std::io::BufRead;
+    let mut child = Command::new(py)
+        .arg(script())
+        .args(args)
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stdout = child.stdout.take().unwrap();
+    let mut lines = std::io::BufReader::new(stdout).lines();
+    let first = lines.next().unwrap().unwrap();
+    assert_eq!(first, "READY", "receiver said {first}");
+    // Keep reading the rest in the background so the child never blocks on a full pipe.
+    std::thread::spawn(move || {
+        for line in lines.map_while(|l| l.ok()) {
+            eprintln!("receiver: {line}");
+        }
+    });
+    child
+}
+
+#[test]
+fn faery_and_a_spif_decoder_receive_what_our_udp_sink_sends() {
+    use v2ce::sink::udp::{UdpConfig, UdpFormat, UdpSink};
+    use v2ce::sink::Sink;
+    let py = python_or_skip!("faery_and_a_spif_decoder_receive_what_our_udp_sink_sends");
+    let dir = temp_dir("udp");
+    let (w, h, events) = stream();
+    let expected = dir.join("expected.csv");
+    csv::write(&expected, &events).unwrap();
+    for format in [
+        UdpFormat::T64X16Y16On8,
+        UdpFormat::T32X16Y15On1,
+        UdpFormat::SpifTimestamped,
+        UdpFormat::Spif,
+    ] {
+        let port = std::net::UdpSocket::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        let name = match format {
+            UdpFormat::Spif | UdpFormat::SpifTimestamped => "spif",
+            f => f.name(),
+        };
+        let mut child = start_receiver(
+            &py,
+            &[
+                "udp".into(),
+                name.into(),
+                port.to_string(),
+                expected.display().to_string(),
+                w.to_string(),
+                h.to_string(),
+            ],
+        );
+        let mut config = UdpConfig::new(&format!("127.0.0.1:{port}"), format);
+        // Paced so a Python receiver on a shared 2-core machine keeps up.
+        config.max_datagrams_per_s = Some(2_000.0);
+        let mut sink = UdpSink::new(config).unwrap();
+        for chunk in events.chunks(1000) {
+            sink.send(chunk).unwrap();
+        }
+        sink.finish().unwrap();
+        let status = child.wait().unwrap();
+        assert!(
+            status.success(),
+            "{format:?}: receiver failed ({status}), {:?}",
+            sink.stats()
+        );
+        assert_eq!(sink.stats().events_dropped, 0);
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn dv_processing_network_reader_receives_what_our_tcp_sink_sends() {
+    use v2ce::sink::tcp::{TcpConfig, TcpSink};
+    use v2ce::sink::Sink;
+    let py = python_or_skip!("dv_processing_network_reader_receives_what_our_tcp_sink_sends");
+    let dir = temp_dir("tcp");
+    let (w, h, events) = stream();
+    let expected = dir.join("expected.csv");
+    csv::write(&expected, &events).unwrap();
+    let mut sink = TcpSink::new(TcpConfig::new("127.0.0.1:0", w, h)).unwrap();
+    let port = sink.local_addr().port();
+    let mut child = start_receiver(
+        &py,
+        &[
+            "tcp".into(),
+            port.to_string(),
+            expected.display().to_string(),
+        ],
+    );
+    for _ in 0..2000 {
+        if sink.client_count() == 1 {
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(5));
+    }
+    assert_eq!(sink.client_count(), 1);
+    for chunk in events.chunks(2000) {
+        sink.send(chunk).unwrap();
+    }
+    // Stay connected, as a live stream does, until the reader has everything.
+    let status = child.wait().unwrap();
+    sink.finish().unwrap();
+    assert!(
+        status.success(),
+        "receiver failed ({status}), {:?}",
+        sink.stats()
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}

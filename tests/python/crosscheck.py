@@ -130,15 +130,34 @@ def udp(fmt, port, want, width, height):
         return compare(got, want, "spif over UDP")
     import faery
 
+    import faery.udp_decoder
+
+    bound = threading.Event()
+    original_init = faery.udp_decoder.Receiver.__init__
+
+    def init_and_signal(self, *args, **kwargs):
+        original_init(self, *args, **kwargs)
+        bound.set()
+
+    faery.udp_decoder.Receiver.__init__ = init_and_signal
     decoder = faery.events_stream_from_udp((width, height), ("127.0.0.1", port), format=fmt)
     parts = []
-    count = 0
+    done = threading.Event()
+
+    def consume():
+        count = 0
+        for packet in decoder:
+            parts.append(columns(packet["t"], packet["x"], packet["y"], packet["on"]))
+            count += len(packet)
+            if count >= len(want):
+                break
+        done.set()
+
+    threading.Thread(target=consume, daemon=True).start()
+    # faery binds its socket when iteration starts: say READY once it has.
+    bound.wait()
     print("READY", flush=True)
-    for packet in decoder:
-        parts.append(columns(packet["t"], packet["x"], packet["y"], packet["on"]))
-        count += len(packet)
-        if count >= len(want):
-            break
+    done.wait()
     got = np.concatenate(parts)
     if fmt == "t32_x16_y15_on1":
         want = want.copy()
@@ -156,9 +175,11 @@ def tcp(port, want):
     size = reader.getEventResolution()
     parts = []
     count = 0
-    while count < len(want) and reader.isRunning():
+    while count < len(want):
         batch = reader.getNextEventBatch()
         if batch is None or len(batch) == 0:
+            if not reader.isRunning():
+                break
             continue
         e = batch.numpy()
         parts.append(columns(e["timestamp"], e["x"], e["y"], e["polarity"]))

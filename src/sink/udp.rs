@@ -1,0 +1,401 @@
+//! Events as UDP datagrams, in the word formats that neuromorphic receivers listen for.
+//!
+//! Every format is little-endian and packs whole events into datagrams of at most
+//! `max_payload` bytes (1472 by default: a 1500-byte Ethernet MTU less the IPv4 and UDP
+//! headers), so no datagram is fragmented.
+//!
+//! | format | bytes per event | layout |
+//! |---|---|---|
+//! | `spif` | 4 (8 with timestamps) | `u32`: bit 31 = 1 when no timestamp word follows, bits 30..16 x, bit 15 polarity (1 = ON), bits 14..0 y; with timestamps bit 31 = 0 and a `u32` word of `t mod 2^32` us follows |
+//! | `t64_x16_y16_on8` | 13 | `u64` t, `u16` x, `u16` y, `u8` on (faery) |
+//! | `t32_x16_y15_on1` | 8 | `u32` `t mod 2^32`, `u16` x, `u16` `y << 1 \| on` (faery) |
+//!
+//! The socket is non-blocking: a datagram the kernel cannot take at once is dropped and counted,
+//! and a receiver that is gone (ICMP port unreachable) costs nothing but the count, so the
+//! caller never waits on a receiver. An optional pacing limit (datagrams per second) spaces the
+//! datagrams out for receivers that cannot take bursts; it sleeps the sending thread only, which
+//! in the daemon is the sink's own.
+
+use std::net::{SocketAddr, ToSocketAddrs, UdpSocket};
+use std::time::{Duration, Instant};
+
+use super::{Sink, SinkStats};
+use crate::error::{Error, Result};
+use crate::event::Event;
+
+/// The datagram formats.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Deserialize, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum UdpFormat {
+    /// SPIF/aestream 32-bit words without timestamps.
+    #[default]
+    Spif,
+    /// SPIF/aestream words, each followed by a 32-bit timestamp word.
+    SpifTimestamped,
+    /// faery's `t64_x16_y16_on8`.
+    T64X16Y16On8,
+    /// faery's `t32_x16_y15_on1`.
+    T32X16Y15On1,
+}
+
+impl UdpFormat {
+    /// Parses `spif`, `spif_timestamped`, `t64_x16_y16_on8` or `t32_x16_y15_on1`.
+    pub fn from_name(name: &str) -> Result<Self> {
+        Ok(match name {
+            "spif" => UdpFormat::Spif,
+            "spif_timestamped" | "spif-timestamped" => UdpFormat::SpifTimestamped,
+            "t64_x16_y16_on8" => UdpFormat::T64X16Y16On8,
+            "t32_x16_y15_on1" => UdpFormat::T32X16Y15On1,
+            _ => {
+                return Err(Error::invalid(
+                    "UDP format",
+                    format!(
+                        "'{name}' (expected spif, spif_timestamped, t64_x16_y16_on8 or t32_x16_y15_on1)"
+                    ),
+                ))
+            }
+        })
+    }
+
+    /// The name [`UdpFormat::from_name`] accepts.
+    pub fn name(self) -> &'static str {
+        match self {
+            UdpFormat::Spif => "spif",
+            UdpFormat::SpifTimestamped => "spif_timestamped",
+            UdpFormat::T64X16Y16On8 => "t64_x16_y16_on8",
+            UdpFormat::T32X16Y15On1 => "t32_x16_y15_on1",
+        }
+    }
+
+    /// Bytes one event takes.
+    pub fn event_bytes(self) -> usize {
+        match self {
+            UdpFormat::Spif => 4,
+            UdpFormat::SpifTimestamped | UdpFormat::T32X16Y15On1 => 8,
+            UdpFormat::T64X16Y16On8 => 13,
+        }
+    }
+
+    /// Largest column and row the format holds.
+    pub fn max_pixel(self) -> (u16, u16) {
+        match self {
+            UdpFormat::Spif | UdpFormat::SpifTimestamped => (0x7FFF, 0x7FFF),
+            UdpFormat::T64X16Y16On8 => (u16::MAX, u16::MAX),
+            UdpFormat::T32X16Y15On1 => (u16::MAX, 0x7FFF),
+        }
+    }
+
+    /// Appends one event's bytes.
+    pub fn encode(self, e: &Event, out: &mut Vec<u8>) {
+        match self {
+            UdpFormat::Spif | UdpFormat::SpifTimestamped => {
+                let stamped = self == UdpFormat::SpifTimestamped;
+                let w = ((!stamped as u32) << 31)
+                    | ((e.x as u32 & 0x7FFF) << 16)
+                    | ((e.on as u32) << 15)
+                    | (e.y as u32 & 0x7FFF);
+                out.extend_from_slice(&w.to_le_bytes());
+                if stamped {
+                    out.extend_from_slice(&(e.t as u32).to_le_bytes());
+                }
+            }
+            UdpFormat::T64X16Y16On8 => {
+                out.extend_from_slice(&(e.t as u64).to_le_bytes());
+                out.extend_from_slice(&e.x.to_le_bytes());
+                out.extend_from_slice(&e.y.to_le_bytes());
+                out.push(e.on as u8);
+            }
+            UdpFormat::T32X16Y15On1 => {
+                out.extend_from_slice(&(e.t as u32).to_le_bytes());
+                out.extend_from_slice(&e.x.to_le_bytes());
+                out.extend_from_slice(&((e.y << 1) | e.on as u16).to_le_bytes());
+            }
+        }
+    }
+
+    /// Decodes one datagram (the inverse of [`UdpFormat::encode`]; times are what the format
+    /// carries: full for `t64`, modulo 2^32 for `t32` and timestamped SPIF, -1 for plain SPIF).
+    pub fn decode(self, datagram: &[u8], out: &mut Vec<Event>) {
+        let u16_at = |b: &[u8], i: usize| u16::from_le_bytes([b[i], b[i + 1]]);
+        let u32_at = |b: &[u8], i: usize| u32::from_le_bytes([b[i], b[i + 1], b[i + 2], b[i + 3]]);
+        for b in datagram.chunks_exact(self.event_bytes()) {
+            out.push(match self {
+                UdpFormat::Spif | UdpFormat::SpifTimestamped => {
+                    let w = u32_at(b, 0);
+                    let t = if w >> 31 == 0 && b.len() == 8 {
+                        u32_at(b, 4) as i64
+                    } else {
+                        -1
+                    };
+                    let x = ((w >> 16) & 0x7FFF) as u16;
+                    Event::new(t, x, (w & 0x7FFF) as u16, (w >> 15) & 1 == 1)
+                }
+                UdpFormat::T64X16Y16On8 => {
+                    let mut t = [0u8; 8];
+                    t.copy_from_slice(&b[..8]);
+                    Event::new(
+                        u64::from_le_bytes(t) as i64,
+                        u16_at(b, 8),
+                        u16_at(b, 10),
+                        b[12] != 0,
+                    )
+                }
+                UdpFormat::T32X16Y15On1 => {
+                    let yo = u16_at(b, 6);
+                    Event::new(u32_at(b, 0) as i64, u16_at(b, 4), yo >> 1, yo & 1 == 1)
+                }
+            });
+        }
+    }
+}
+
+/// Settings of a [`UdpSink`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct UdpConfig {
+    /// Receiver address, `host:port`.
+    pub address: String,
+    /// Datagram format.
+    pub format: UdpFormat,
+    /// Largest datagram payload in bytes.
+    pub max_payload: usize,
+    /// Pacing: at most this many datagrams per second (`None`: as fast as the kernel takes them).
+    pub max_datagrams_per_s: Option<f64>,
+}
+
+impl UdpConfig {
+    /// The default payload limit: 1500-byte MTU less 20 (IPv4) and 8 (UDP) header bytes.
+    pub const DEFAULT_PAYLOAD: usize = 1472;
+
+    /// Settings for `address` and `format` with the default payload and no pacing.
+    pub fn new(address: &str, format: UdpFormat) -> Self {
+        UdpConfig {
+            address: address.to_string(),
+            format,
+            max_payload: Self::DEFAULT_PAYLOAD,
+            max_datagrams_per_s: None,
+        }
+    }
+}
+
+/// Sends events as UDP datagrams.
+pub struct UdpSink {
+    config: UdpConfig,
+    socket: UdpSocket,
+    target: SocketAddr,
+    per_datagram: usize,
+    buf: Vec<u8>,
+    /// When the next datagram may go, under pacing.
+    next_slot: Instant,
+    interval: Option<Duration>,
+    stats: SinkStats,
+}
+
+impl UdpSink {
+    /// Opens a non-blocking socket for `config`.
+    pub fn new(config: UdpConfig) -> Result<Self> {
+        let bad = |m: String| Error::invalid("UDP sink", m);
+        let target = config
+            .address
+            .to_socket_addrs()
+            .map_err(|e| bad(format!("{}: {e}", config.address)))?
+            .next()
+            .ok_or_else(|| bad(format!("{} resolves to no address", config.address)))?;
+        let per_datagram = config.max_payload / config.format.event_bytes();
+        if per_datagram == 0 || config.max_payload > 65_507 {
+            return Err(bad(format!(
+                "max payload {} bytes must hold one {}-byte event and fit a datagram (65507)",
+                config.max_payload,
+                config.format.event_bytes()
+            )));
+        }
+        let interval = match config.max_datagrams_per_s {
+            Some(r) if r.is_finite() && r > 0.0 => Some(Duration::from_secs_f64(1.0 / r)),
+            Some(r) => return Err(bad(format!("pacing {r} datagrams/s must be positive"))),
+            None => None,
+        };
+        let local: SocketAddr = if target.is_ipv4() {
+            "0.0.0.0:0"
+        } else {
+            "[::]:0"
+        }
+        .parse()
+        .map_err(|e| bad(format!("{e}")))?;
+        let socket = UdpSocket::bind(local).map_err(|e| bad(e.to_string()))?;
+        socket
+            .set_nonblocking(true)
+            .map_err(|e| bad(e.to_string()))?;
+        Ok(UdpSink {
+            per_datagram,
+            buf: Vec::with_capacity(config.max_payload),
+            next_slot: Instant::now(),
+            interval,
+            config,
+            socket,
+            target,
+            stats: SinkStats::default(),
+        })
+    }
+
+    fn pace(&mut self) {
+        if let Some(interval) = self.interval {
+            let now = Instant::now();
+            if self.next_slot > now {
+                std::thread::sleep(self.next_slot - now);
+            } else if now - self.next_slot > interval * 64 {
+                // Idle for a while: allow a burst of up to 64 datagrams, no more.
+                self.next_slot = now - interval * 64;
+            }
+            self.next_slot += interval;
+        }
+    }
+}
+
+impl Sink for UdpSink {
+    fn describe(&self) -> String {
+        format!("udp {} ({})", self.target, self.config.format.name())
+    }
+
+    fn send(&mut self, events: &[Event]) -> Result<()> {
+        self.stats.events_in += events.len() as u64;
+        let (mx, my) = self.config.format.max_pixel();
+        if let Some(e) = events.iter().find(|e| e.x > mx || e.y > my) {
+            return Err(Error::invalid(
+                "pixel",
+                format!(
+                    "({}, {}) does not fit the {} format",
+                    e.x,
+                    e.y,
+                    self.config.format.name()
+                ),
+            ));
+        }
+        for chunk in events.chunks(self.per_datagram) {
+            self.buf.clear();
+            for e in chunk {
+                self.config.format.encode(e, &mut self.buf);
+            }
+            self.pace();
+            match self.socket.send_to(&self.buf, self.target) {
+                Ok(_) => {
+                    self.stats.messages_sent += 1;
+                    self.stats.events_sent += chunk.len() as u64;
+                    self.stats.bytes_sent += self.buf.len() as u64;
+                }
+                // Full send buffer, a receiver that is gone, a network that is down: drop and
+                // count, never wait.
+                Err(_) => {
+                    self.stats.messages_dropped += 1;
+                    self.stats.events_dropped += chunk.len() as u64;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn finish(&mut self) -> Result<()> {
+        Ok(())
+    }
+
+    fn stats(&self) -> SinkStats {
+        self.stats
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const FORMATS: [UdpFormat; 4] = [
+        UdpFormat::Spif,
+        UdpFormat::SpifTimestamped,
+        UdpFormat::T64X16Y16On8,
+        UdpFormat::T32X16Y15On1,
+    ];
+
+    #[test]
+    fn words_follow_the_documented_layout() {
+        let e = Event::new(0x1_2345_6789, 0x123, 0x45, true);
+        let mut b = Vec::new();
+        UdpFormat::Spif.encode(&e, &mut b);
+        assert_eq!(
+            b,
+            (0x8000_0000u32 | 0x123 << 16 | 1 << 15 | 0x45).to_le_bytes()
+        );
+        b.clear();
+        UdpFormat::SpifTimestamped.encode(&e, &mut b);
+        assert_eq!(&b[..4], (0x123u32 << 16 | 1 << 15 | 0x45).to_le_bytes());
+        assert_eq!(&b[4..], 0x2345_6789u32.to_le_bytes());
+        b.clear();
+        UdpFormat::T32X16Y15On1.encode(&e, &mut b);
+        assert_eq!(b, [0x89, 0x67, 0x45, 0x23, 0x23, 0x01, 0x8B, 0x00]);
+        b.clear();
+        UdpFormat::T64X16Y16On8.encode(&e, &mut b);
+        assert_eq!(b.len(), 13);
+        assert_eq!(&b[..8], 0x1_2345_6789u64.to_le_bytes());
+    }
+
+    #[test]
+    fn loopback_datagrams_stay_under_the_payload_and_decode() {
+        for format in FORMATS {
+            let rx = UdpSocket::bind("127.0.0.1:0").unwrap();
+            rx.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+            let mut config = UdpConfig::new(&rx.local_addr().unwrap().to_string(), format);
+            config.max_payload = 100;
+            config.max_datagrams_per_s = Some(20_000.0);
+            let mut sink = UdpSink::new(config).unwrap();
+            let events: Vec<Event> = (0..500)
+                .map(|i| Event::new(i * 7, (i % 300) as u16, (i % 200) as u16, i % 3 == 0))
+                .collect();
+            sink.send(&events).unwrap();
+            let stats = sink.stats();
+            assert_eq!(stats.events_sent, 500, "{format:?}");
+            let mut got = Vec::new();
+            let mut buf = [0u8; 2048];
+            for _ in 0..stats.messages_sent {
+                let n = rx.recv(&mut buf).unwrap();
+                assert!(n <= 100, "{format:?}: {n}");
+                format.decode(&buf[..n], &mut got);
+            }
+            assert_eq!(got.len(), 500);
+            for (g, e) in got.iter().zip(&events) {
+                assert_eq!((g.x, g.y, g.on), (e.x, e.y, e.on), "{format:?}");
+                if format != UdpFormat::Spif {
+                    assert_eq!(g.t, e.t, "{format:?}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn an_absent_receiver_never_blocks_or_fails() {
+        // Bind and drop a socket to get a port nobody listens on.
+        let port = UdpSocket::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap();
+        let mut sink = UdpSink::new(UdpConfig::new(&port.to_string(), UdpFormat::Spif)).unwrap();
+        let events: Vec<Event> = (0..100_000).map(|i| Event::new(i, 1, 2, true)).collect();
+        for chunk in events.chunks(1000) {
+            sink.send(chunk).unwrap();
+        }
+        let s = sink.stats();
+        assert_eq!(s.events_in, 100_000);
+        assert_eq!(s.events_sent + s.events_dropped, 100_000);
+        // 1000 events per call, 368 per datagram: 3 datagrams a call.
+        assert_eq!(s.messages_sent + s.messages_dropped, 300);
+    }
+
+    #[test]
+    fn bad_settings_are_errors() {
+        let mut c = UdpConfig::new("127.0.0.1:9", UdpFormat::T64X16Y16On8);
+        c.max_payload = 12;
+        assert!(UdpSink::new(c.clone()).is_err());
+        c.max_payload = 1472;
+        c.max_datagrams_per_s = Some(-1.0);
+        assert!(UdpSink::new(c).is_err());
+        assert!(UdpSink::new(UdpConfig::new("127.0.0.1", UdpFormat::Spif)).is_err());
+        assert!(UdpFormat::from_name("json").is_err());
+        let mut s = UdpSink::new(UdpConfig::new("127.0.0.1:9", UdpFormat::T32X16Y15On1)).unwrap();
+        assert!(s.send(&[Event::new(0, 0, 40_000, true)]).is_err());
+    }
+}
