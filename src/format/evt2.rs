@@ -71,8 +71,9 @@ impl<R: Read> EventDecoder for Decoder<R> {
                 match w >> 28 {
                     0x0 | 0x1 => {
                         let Some(high) = self.time_high else { continue };
-                        let t = ((((high as i64) << 6) | ((w >> 22) & 0x3F) as i64) + self.base)
-                            .max(self.last_t);
+                        let t = ((((high as i64) << 6) | ((w >> 22) & 0x3F) as i64)
+                            .saturating_add(self.base))
+                        .max(self.last_t);
                         self.last_t = t;
                         let x = ((w >> 11) & 0x7FF) as u16;
                         let y = (w & 0x7FF) as u16;

@@ -6,7 +6,7 @@
 //! | `0x0` EVT_ADDR_Y | bits 10..0 row (bit 11: system type, ignored) |
 //! | `0x2` EVT_ADDR_X | bit 11 polarity, bits 10..0 column: one event at the current row and time |
 //! | `0x3` VECT_BASE_X | bit 11 polarity, bits 10..0 column: base of the next vector words |
-//! | `0x4` VECT_12 | bits 11..0: events at base + i for each set bit i; base += 12 |
+//! | `0x4` VECT_12 | bits 11..0: events at base + i for each set bit i (bits past the sensor's width are ignored); base += 12 |
 //! | `0x5` VECT_8 | bits 7..0: likewise; base += 8 |
 //! | `0x6` EVT_TIME_LOW | bits 11..0: time bits 11..0 |
 //! | `0x8` EVT_TIME_HIGH | bits 11..0: time bits 23..12 |
@@ -41,6 +41,9 @@ const TIME_BITS: u32 = 24;
 const WRAP_STEP: u16 = (1 << 12) - 2;
 /// The encoder's largest forward step between time-high words.
 const MAX_STEP: i64 = 2048;
+/// The longest gap between consecutive events the encoder bridges (12.7 days: about 200,000
+/// time-high words); longer gaps are refused rather than written as gigabytes of time words.
+pub const MAX_GAP_US: i64 = 1 << 40;
 const WHAT: &str = "EVT 3.0 stream";
 
 /// Streams events out of EVT 3.0 words (the part after the header).
@@ -79,7 +82,8 @@ impl<R: Read> Decoder<R> {
     }
 
     fn update_time(&mut self) {
-        let t = self.base_t + (((self.time_high as i64) << 12) | self.time_low as i64);
+        let t =
+            (((self.time_high as i64) << 12) | self.time_low as i64).saturating_add(self.base_t);
         self.t = self.t.max(t);
     }
 
@@ -104,7 +108,10 @@ impl<R: Read> Decoder<R> {
     }
 
     fn vector(&mut self, mask: u16, bits: u16, out: &mut Vec<Event>) {
-        let mut m = mask;
+        // Bits past the sensor's last column (or the 11-bit address space) are not pixels.
+        let width = self.size.map_or(2048, |s| s.0.min(2048));
+        let room = width.saturating_sub(self.base_x).min(16) as u32;
+        let mut m = (mask as u32 & ((1u32 << room) - 1)) as u16;
         while m != 0 {
             let i = m.trailing_zeros() as u16;
             out.push(Event::new(self.t, self.base_x + i, self.y, self.base_on));
@@ -292,6 +299,16 @@ impl<W: Write> EventEncoder for Encoder<W> {
                     format!("{} us comes before {} us", e.t, self.last_t),
                 ));
             }
+            if self.last_t != i64::MIN && e.t - self.last_t > MAX_GAP_US {
+                return Err(Error::invalid(
+                    "event time",
+                    format!(
+                        "a gap of {} us after {} us is longer than EVT 3.0 bridges ({MAX_GAP_US} us); split the stream",
+                        e.t - self.last_t,
+                        self.last_t
+                    ),
+                ));
+            }
             self.last_t = e.t;
             self.set_time(e.t - offset);
             if self.y != Some(e.y) {
@@ -411,6 +428,36 @@ mod tests {
         let a = (2 << 12) | 0x32b;
         assert_eq!(t, vec![a, a, 4000 << 12, 4000 << 12]);
         assert!(out.iter().all(|e| e.y == 5));
+    }
+
+    #[test]
+    fn vector_bits_past_the_sensor_are_not_events() {
+        // A 16-column sensor: base x 10 with all 12 bits set gives columns 10..=15 only; the
+        // same at base 2046 without a size gives 2046 and 2047 (found by fuzzing).
+        let words: [u16; 4] = [0x8001, 0x0003, 0x300A, 0x4FFF];
+        let bytes: Vec<u8> = words.iter().flat_map(|w| w.to_le_bytes()).collect();
+        let header = raw::Header {
+            size: Some((16, 16)),
+            ..Default::default()
+        };
+        let mut out = Vec::new();
+        Decoder::new(&bytes[..], &header)
+            .read_events(&mut out, 100)
+            .unwrap();
+        assert_eq!(
+            out.iter().map(|e| e.x).collect::<Vec<_>>(),
+            (10..16).collect::<Vec<_>>()
+        );
+        let words: [u16; 4] = [0x8001, 0x0003, 0x37FE, 0x4FFF];
+        let bytes: Vec<u8> = words.iter().flat_map(|w| w.to_le_bytes()).collect();
+        let mut out = Vec::new();
+        Decoder::new(&bytes[..], &raw::Header::default())
+            .read_events(&mut out, 100)
+            .unwrap();
+        assert_eq!(
+            out.iter().map(|e| e.x).collect::<Vec<_>>(),
+            vec![2046, 2047]
+        );
     }
 
     #[test]
