@@ -304,6 +304,15 @@ mod tests {
     use crate::format::aedat4::{Item, Reader};
 
     fn read_all(stream: TcpStream, want: usize) -> Vec<Event> {
+        read_counting(stream, want, &std::sync::atomic::AtomicUsize::new(0))
+    }
+
+    /// Reads until `want` events, publishing the count so far in `progress`.
+    fn read_counting(
+        stream: TcpStream,
+        want: usize,
+        progress: &std::sync::atomic::AtomicUsize,
+    ) -> Vec<Event> {
         stream
             .set_read_timeout(Some(Duration::from_secs(10)))
             .unwrap();
@@ -316,6 +325,7 @@ mod tests {
                 Some(_) => {}
                 None => break,
             }
+            progress.store(got.len(), Ordering::Relaxed);
         }
         got
     }
@@ -369,18 +379,27 @@ mod tests {
         // A client that connects and never reads.
         let stalled = TcpStream::connect(addr).unwrap();
         let n = 400 * aedat4::PACKET_EVENTS;
+        let progress = Arc::new(std::sync::atomic::AtomicUsize::new(0));
         let fast = {
             let s = TcpStream::connect(addr).unwrap();
-            std::thread::spawn(move || read_all(s, n))
+            let progress = progress.clone();
+            std::thread::spawn(move || read_counting(s, n, &progress))
         };
         wait_for_clients(&sink, 2);
         let events: Vec<Event> = (0..n as i64)
             .map(|i| Event::new(i, (i % 64) as u16, (i % 48) as u16, true))
             .collect();
-        for chunk in events.chunks(aedat4::PACKET_EVENTS) {
+        for (i, chunk) in events.chunks(aedat4::PACKET_EVENTS).enumerate() {
             sink.send(chunk).unwrap();
-            // Give the fast reader a moment per packet, as a live stream would.
-            std::thread::sleep(Duration::from_micros(300));
+            // A live stream's pace: the reading client keeps up (it has read each packet
+            // before the next is sent, however loaded the machine), the stalled one never reads.
+            let sent = (i + 1) * aedat4::PACKET_EVENTS;
+            for _ in 0..20_000 {
+                if progress.load(Ordering::Relaxed) >= sent {
+                    break;
+                }
+                std::thread::sleep(Duration::from_micros(500));
+            }
         }
         let s = sink.stats();
         sink.finish().unwrap();
