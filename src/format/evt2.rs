@@ -17,7 +17,7 @@
 use std::io::{Read, Write};
 
 use super::raw::{self, Evt};
-use super::{read_words, EventDecoder, EventEncoder};
+use super::{check_event, read_words, EventDecoder, EventEncoder};
 use crate::error::{Error, Result};
 use crate::event::Event;
 
@@ -103,10 +103,7 @@ impl<R: Read> EventDecoder for Decoder<R> {
 /// of the time change.
 pub struct Encoder<W: Write> {
     writer: W,
-    width: u16,
-    height: u16,
-    /// The header's time offset, once written.
-    offset: Option<i64>,
+    header: raw::LazyHeader,
     /// `(t - offset) >> 6` of the last time-high word written.
     time_high: Option<i64>,
     last_t: i64,
@@ -116,12 +113,9 @@ pub struct Encoder<W: Write> {
 impl<W: Write> Encoder<W> {
     /// An encoder for a `width x height` sensor (at most 2048 x 2048).
     pub fn new(writer: W, width: u16, height: u16) -> Result<Self> {
-        raw::check_size(Evt::Evt2, width, height)?;
         Ok(Encoder {
             writer,
-            width,
-            height,
-            offset: None,
+            header: raw::LazyHeader::new(Evt::Evt2, width, height)?,
             time_high: None,
             last_t: i64::MIN,
             words: Vec::new(),
@@ -129,14 +123,9 @@ impl<W: Write> Encoder<W> {
     }
 
     fn header(&mut self, first_t: i64) -> Result<i64> {
-        if let Some(offset) = self.offset {
-            return Ok(offset);
-        }
-        let offset = raw::time_offset_for(Evt::Evt2, first_t);
-        raw::write_header(&mut self.writer, Evt::Evt2, self.width, self.height, offset)
-            .map_err(output_error)?;
-        self.offset = Some(offset);
-        Ok(offset)
+        self.header
+            .offset(&mut self.writer, first_t)
+            .map_err(output_error)
     }
 
     /// Flushes and returns the writer.
@@ -160,21 +149,7 @@ impl<W: Write> EventEncoder for Encoder<W> {
         self.words.clear();
         self.words.reserve(events.len() * 4 + 8);
         for e in events {
-            if e.t < self.last_t {
-                return Err(Error::invalid(
-                    "event time",
-                    format!("{} us comes before {} us", e.t, self.last_t),
-                ));
-            }
-            if e.x >= self.width || e.y >= self.height {
-                return Err(Error::invalid(
-                    "pixel",
-                    format!(
-                        "({}, {}) is outside the {} x {} sensor",
-                        e.x, e.y, self.width, self.height
-                    ),
-                ));
-            }
+            check_event(e, self.last_t, self.header.width, self.header.height)?;
             self.last_t = e.t;
             let rel = e.t - offset;
             let target = rel >> 6;

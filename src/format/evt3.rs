@@ -31,7 +31,7 @@
 use std::io::{Read, Write};
 
 use super::raw::{self, Evt};
-use super::{read_words, EventDecoder, EventEncoder};
+use super::{check_event, read_words, EventDecoder, EventEncoder};
 use crate::error::{Error, Result};
 use crate::event::Event;
 
@@ -164,9 +164,7 @@ impl<R: Read> EventDecoder for Decoder<R> {
 /// Writes EVT 3.0: the header on the first write, then state-change and event words.
 pub struct Encoder<W: Write> {
     writer: W,
-    width: u16,
-    height: u16,
-    offset: Option<i64>,
+    header: raw::LazyHeader,
     /// `(t - offset) >> 12` of the last time-high word, unwrapped.
     time_high: Option<i64>,
     time_low: Option<u16>,
@@ -178,12 +176,9 @@ pub struct Encoder<W: Write> {
 impl<W: Write> Encoder<W> {
     /// An encoder for a `width x height` sensor (at most 2048 x 2048).
     pub fn new(writer: W, width: u16, height: u16) -> Result<Self> {
-        raw::check_size(Evt::Evt3, width, height)?;
         Ok(Encoder {
             writer,
-            width,
-            height,
-            offset: None,
+            header: raw::LazyHeader::new(Evt::Evt3, width, height)?,
             time_high: None,
             time_low: None,
             y: None,
@@ -193,14 +188,9 @@ impl<W: Write> Encoder<W> {
     }
 
     fn header(&mut self, first_t: i64) -> Result<i64> {
-        if let Some(offset) = self.offset {
-            return Ok(offset);
-        }
-        let offset = raw::time_offset_for(Evt::Evt3, first_t);
-        raw::write_header(&mut self.writer, Evt::Evt3, self.width, self.height, offset)
-            .map_err(output_error)?;
-        self.offset = Some(offset);
-        Ok(offset)
+        self.header
+            .offset(&mut self.writer, first_t)
+            .map_err(output_error)
     }
 
     fn word(&mut self, w: u16) {
@@ -278,27 +268,14 @@ impl<W: Write> EventEncoder for Encoder<W> {
         let offset = self.header(first.t)?;
         self.words.clear();
         self.words.reserve(events.len() * 2 + 16);
-        if let Some(e) = events
-            .iter()
-            .find(|e| e.x >= self.width || e.y >= self.height)
-        {
-            return Err(Error::invalid(
-                "pixel",
-                format!(
-                    "({}, {}) is outside the {} x {} sensor",
-                    e.x, e.y, self.width, self.height
-                ),
-            ));
+        let mut last = self.last_t;
+        for e in events {
+            check_event(e, last, self.header.width, self.header.height)?;
+            last = e.t;
         }
         let mut i = 0;
         while i < events.len() {
             let e = events[i];
-            if e.t < self.last_t {
-                return Err(Error::invalid(
-                    "event time",
-                    format!("{} us comes before {} us", e.t, self.last_t),
-                ));
-            }
             if self.last_t != i64::MIN && e.t - self.last_t > MAX_GAP_US {
                 return Err(Error::invalid(
                     "event time",

@@ -44,6 +44,27 @@ pub trait EventEncoder {
     fn finish(&mut self) -> Result<()>;
 }
 
+/// Checks what every encoder and sink requires of an event: time at or after `last_t`, and a
+/// pixel inside the `width x height` sensor.
+pub fn check_event(e: &Event, last_t: i64, width: u16, height: u16) -> Result<()> {
+    if e.t < last_t {
+        return Err(Error::invalid(
+            "event time",
+            format!("{} us comes before {last_t} us", e.t),
+        ));
+    }
+    if e.x >= width || e.y >= height {
+        return Err(Error::invalid(
+            "pixel",
+            format!(
+                "({}, {}) is outside the {width} x {height} sensor",
+                e.x, e.y
+            ),
+        ));
+    }
+    Ok(())
+}
+
 /// Reads whole `word`-byte words into `buf`; returns the bytes read (less than `buf.len()` only
 /// at the end of the input). Ending inside a word is an error naming the word.
 pub(crate) fn read_words(

@@ -202,6 +202,41 @@ pub fn write_header(
     w.write_all(b"% end\n")
 }
 
+/// The header an encoder writes just before its first event, when the time offset is known.
+#[derive(Debug, Clone)]
+pub struct LazyHeader {
+    evt: Evt,
+    /// Sensor width.
+    pub width: u16,
+    /// Sensor height.
+    pub height: u16,
+    offset: Option<i64>,
+}
+
+impl LazyHeader {
+    /// A header for `evt` and a `width x height` sensor (checked).
+    pub fn new(evt: Evt, width: u16, height: u16) -> Result<Self> {
+        check_size(evt, width, height)?;
+        Ok(LazyHeader {
+            evt,
+            width,
+            height,
+            offset: None,
+        })
+    }
+
+    /// The time offset, writing the header first if it has not been written yet.
+    pub fn offset(&mut self, w: &mut impl Write, first_t: i64) -> std::io::Result<i64> {
+        if let Some(offset) = self.offset {
+            return Ok(offset);
+        }
+        let offset = time_offset_for(self.evt, first_t);
+        write_header(w, self.evt, self.width, self.height, offset)?;
+        self.offset = Some(offset);
+        Ok(offset)
+    }
+}
+
 /// Checks a sensor size against the format's coordinate bits (11 for both formats).
 pub fn check_size(evt: Evt, width: u16, height: u16) -> Result<()> {
     if width == 0 || height == 0 || width > 2048 || height > 2048 {

@@ -24,6 +24,7 @@ use flatbuffers::FlatBufferBuilder;
 use super::{Sink, SinkStats};
 use crate::error::{Error, Result};
 use crate::event::Event;
+use crate::format;
 use crate::format::aedat4::{self, flatbuf, Compression};
 
 /// Settings of a [`TcpSink`].
@@ -206,19 +207,10 @@ impl Sink for TcpSink {
     fn send(&mut self, events: &[Event]) -> Result<()> {
         self.stats.events_in += events.len() as u64;
         let (w, h) = self.config.size;
-        if let Some(e) = events.iter().find(|e| e.x >= w || e.y >= h) {
-            return Err(Error::invalid(
-                "pixel",
-                format!("({}, {}) is outside the {w} x {h} sensor", e.x, e.y),
-            ));
+        for e in events {
+            format::check_event(e, self.last_t, w, h)?;
+            self.last_t = e.t;
         }
-        if let Some(e) = events.iter().find(|e| e.t < self.last_t) {
-            return Err(Error::invalid(
-                "event time",
-                format!("{} us comes before {} us", e.t, self.last_t),
-            ));
-        }
-        self.last_t = events.last().map_or(self.last_t, |e| e.t);
         for chunk in events.chunks(aedat4::PACKET_EVENTS) {
             let packet = self.packet(chunk);
             let mut delivered = false;

@@ -664,21 +664,7 @@ fn find_table_field(buf: &[u8]) -> Result<u64> {
 impl<W: Write + Seek> EventEncoder for Writer<W> {
     fn write(&mut self, events: &[Event]) -> Result<()> {
         for e in events {
-            if e.x >= self.width || e.y >= self.height {
-                return Err(Error::invalid(
-                    "pixel",
-                    format!(
-                        "({}, {}) is outside the {} x {} sensor",
-                        e.x, e.y, self.width, self.height
-                    ),
-                ));
-            }
-            if e.t < self.last_t {
-                return Err(Error::invalid(
-                    "event time",
-                    format!("{} us comes before {} us", e.t, self.last_t),
-                ));
-            }
+            super::check_event(e, self.last_t, self.width, self.height)?;
             self.last_t = e.t;
             self.pending.push(*e);
             if self.pending.len() == PACKET_EVENTS {
