@@ -11,6 +11,7 @@ pub mod error;
 pub mod eval;
 pub mod event;
 pub mod format;
+pub mod frame;
 pub mod interval;
 pub mod metrics;
 pub mod sink;

@@ -1,0 +1,204 @@
+//! Video files through the `ffmpeg` command-line tool (Debian's `ffmpeg` package).
+//!
+//! `ffprobe` gives the frame size; `ffmpeg` decodes the first video stream to `rgb24` on a pipe
+//! with `-fps_mode passthrough` (no frame duplicated or dropped) and its `showinfo` filter
+//! prints each frame's presentation timestamp, which becomes the frame's time, so variable frame
+//! rates and odd rates (29.97) are kept exactly. Memory stays at one frame.
+
+use std::io::{BufRead, BufReader, Read};
+use std::path::{Path, PathBuf};
+use std::process::{Child, ChildStdout, Command, Stdio};
+use std::sync::mpsc::{channel, Receiver};
+
+use super::color::rgb24_to_luma;
+use super::{check_order, Frame, FrameSource};
+use crate::error::{Error, Result};
+
+/// Decodes a video file with `ffmpeg`.
+pub struct FfmpegSource {
+    path: PathBuf,
+    child: Child,
+    stdout: ChildStdout,
+    times: Receiver<i64>,
+    stderr_tail: std::sync::Arc<std::sync::Mutex<Vec<String>>>,
+    size: (u16, u16),
+    rgb: Vec<u8>,
+    last_t: Option<i64>,
+    index: usize,
+}
+
+fn tool_error(path: &Path, tool: &str, e: std::io::Error) -> Error {
+    if e.kind() == std::io::ErrorKind::NotFound {
+        Error::invalid(
+            "video input",
+            format!(
+                "{}: `{tool}` was not found; install it (Debian: apt-get install ffmpeg) or give frames as a .y4m or an image folder",
+                path.display()
+            ),
+        )
+    } else {
+        Error::io(path, e)
+    }
+}
+
+/// Frame width and height of the first video stream, from `ffprobe`.
+fn probe_size(path: &Path) -> Result<(u16, u16)> {
+    let out = Command::new("ffprobe")
+        .args(["-v", "error", "-select_streams", "v:0"])
+        .args(["-show_entries", "stream=width,height", "-of", "csv=p=0:s=x"])
+        .arg(path)
+        .stdin(Stdio::null())
+        .output()
+        .map_err(|e| tool_error(path, "ffprobe", e))?;
+    let text = String::from_utf8_lossy(&out.stdout);
+    let line = text.lines().next().unwrap_or("").trim();
+    let parsed = line
+        .split_once('x')
+        .and_then(|(w, h)| Some((w.parse::<u16>().ok()?, h.parse::<u16>().ok()?)));
+    match parsed {
+        Some((w, h)) if out.status.success() && w > 0 && h > 0 => Ok((w, h)),
+        _ => Err(Error::format(
+            path,
+            format!(
+                "not a readable video (ffprobe: {})",
+                String::from_utf8_lossy(&out.stderr).trim()
+            ),
+        )),
+    }
+}
+
+/// Parses `pts_time:12.345` out of a `showinfo` line, in us.
+fn parse_pts_time(line: &str) -> Option<i64> {
+    let rest = line.split("pts_time:").nth(1)?;
+    let value = rest.split_whitespace().next()?;
+    crate::format::ijrr::parse_seconds_us(value)
+}
+
+impl FfmpegSource {
+    /// Starts decoding `path`.
+    pub fn open(path: &Path) -> Result<Self> {
+        let size = probe_size(path)?;
+        let mut child = Command::new("ffmpeg")
+            .args(["-nostdin", "-hide_banner", "-loglevel", "info", "-i"])
+            .arg(path)
+            .args(["-map", "0:v:0", "-fps_mode", "passthrough", "-vf", "showinfo"])
+            .args(["-f", "rawvideo", "-pix_fmt", "rgb24", "pipe:1"])
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .map_err(|e| tool_error(path, "ffmpeg", e))?;
+        let stdout = child
+            .stdout
+            .take()
+            .ok_or_else(|| Error::format(path, "ffmpeg gave no output pipe"))?;
+        let stderr = child
+            .stderr
+            .take()
+            .ok_or_else(|| Error::format(path, "ffmpeg gave no error pipe"))?;
+        let (tx, times) = channel();
+        let stderr_tail = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+        let tail = stderr_tail.clone();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stderr).lines().map_while(|l| l.ok()) {
+                if line.contains("Parsed_showinfo") && line.contains(" n:") {
+                    if let Some(t) = parse_pts_time(&line) {
+                        if tx.send(t).is_err() {
+                            break;
+                        }
+                    }
+                } else if let Ok(mut tail) = tail.lock() {
+                    tail.push(line);
+                    if tail.len() > 8 {
+                        tail.remove(0);
+                    }
+                }
+            }
+        });
+        Ok(FfmpegSource {
+            path: path.to_path_buf(),
+            child,
+            stdout,
+            times,
+            stderr_tail,
+            size,
+            rgb: vec![0; size.0 as usize * size.1 as usize * 3],
+            last_t: None,
+            index: 0,
+        })
+    }
+
+    fn failure(&mut self, what: &str) -> Error {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        let tail = self
+            .stderr_tail
+            .lock()
+            .map(|t| t.join(" | "))
+            .unwrap_or_default();
+        Error::format(&self.path, format!("{what} (ffmpeg: {tail})"))
+    }
+}
+
+impl FrameSource for FfmpegSource {
+    fn size(&self) -> (u16, u16) {
+        self.size
+    }
+
+    fn next_frame(&mut self) -> Result<Option<Frame>> {
+        let mut filled = 0;
+        while filled < self.rgb.len() {
+            match self.stdout.read(&mut self.rgb[filled..]) {
+                Ok(0) => break,
+                Ok(n) => filled += n,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(Error::io(&self.path, e)),
+            }
+        }
+        if filled == 0 {
+            let status = self.child.wait().map_err(|e| Error::io(&self.path, e))?;
+            if !status.success() {
+                return Err(self.failure(&format!("decoding failed after {} frames", self.index)));
+            }
+            return Ok(None);
+        }
+        if filled < self.rgb.len() {
+            return Err(self.failure(&format!("frame {} cut short", self.index)));
+        }
+        let Ok(t) = self.times.recv() else {
+            return Err(self.failure(&format!("no timestamp for frame {}", self.index)));
+        };
+        check_order(&self.path, self.last_t, t, self.index)?;
+        self.last_t = Some(t);
+        self.index += 1;
+        let mut luma = Vec::new();
+        rgb24_to_luma(&self.rgb, &mut luma);
+        Ok(Some(Frame {
+            t,
+            width: self.size.0,
+            height: self.size.1,
+            luma,
+        }))
+    }
+
+    fn describe(&self) -> String {
+        format!("video {} (ffmpeg)", self.path.display())
+    }
+}
+
+impl Drop for FfmpegSource {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn showinfo_times() {
+        let line = "[Parsed_showinfo_0 @ 0x55] n:   3 pts:  3003 pts_time:0.1001   duration: 1001";
+        assert_eq!(super::parse_pts_time(line), Some(100_100));
+        assert_eq!(super::parse_pts_time("n: 0 pts: 0"), None);
+    }
+}

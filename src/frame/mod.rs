@@ -1,0 +1,111 @@
+//! Frames with their real timestamps, from video files, image folders, Y4M, the APS frames of an
+//! AEDAT 4.0 recording, or synthetic scenes, behind one [`FrameSource`] trait.
+//!
+//! A [`Frame`] holds **linear** relative luminance, 16 bits per pixel (0 = black, 65535 = the
+//! source's full scale): the quantity a photodiode integrates. Conversion, in [`color`]:
+//! - sRGB / BT.709 video and images: each 8-bit `R'G'B'` channel is decoded with the sRGB
+//!   transfer function to linear light, then `Y = 0.2126 R + 0.7152 G + 0.0722 B` (BT.709 primaries);
+//!   gray images are decoded with the same transfer function;
+//! - Y4M (`Y'CbCr`, BT.601 studio range unless the header says full range) is converted to `R'G'B'`
+//!   and then as above;
+//! - DAVIS APS frames are already linear in the light (raw ADC counts), so 8-bit values are
+//!   scaled to 16 bits without a transfer function.
+
+pub mod aps;
+pub mod color;
+pub mod ffmpeg;
+pub mod images;
+pub mod synthetic;
+pub mod y4m;
+
+use std::path::Path;
+
+use crate::error::{Error, Result};
+
+/// Full scale of [`Frame::luma`].
+pub const FULL_SCALE: u16 = u16::MAX;
+
+/// One frame: linear luminance and the time it stands for.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Frame {
+    /// Time in us (for APS frames: mid-exposure; for video: the presentation timestamp).
+    pub t: i64,
+    /// Width in pixels.
+    pub width: u16,
+    /// Height in pixels.
+    pub height: u16,
+    /// Row-major linear luminance, 0..=[`FULL_SCALE`].
+    pub luma: Vec<u16>,
+}
+
+impl Frame {
+    /// A frame of `width x height` filled with `value`.
+    pub fn filled(t: i64, width: u16, height: u16, value: u16) -> Self {
+        Frame {
+            t,
+            width,
+            height,
+            luma: vec![value; width as usize * height as usize],
+        }
+    }
+}
+
+/// A source of frames in time order.
+pub trait FrameSource: Send {
+    /// Frame width and height.
+    fn size(&self) -> (u16, u16);
+
+    /// The next frame, or `None` at the end.
+    fn next_frame(&mut self) -> Result<Option<Frame>>;
+
+    /// What this source reads, for logs.
+    fn describe(&self) -> String;
+}
+
+/// How to time frames whose source carries no timestamps (image folders).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct SourceOptions {
+    /// Frame rate for image folders without a times file.
+    pub fps: Option<f64>,
+    /// Image values are linear in the light (raw sensor exports), not sRGB-encoded.
+    pub linear: bool,
+}
+
+/// Opens `path` as a frame source: a folder of images, a `.y4m`, an `.aedat4` with APS frames,
+/// or any other file as a video through the `ffmpeg` command-line tool.
+pub fn open(path: &Path, options: &SourceOptions) -> Result<Box<dyn FrameSource>> {
+    if path.is_dir() {
+        return Ok(Box::new(images::ImageFolder::open_with(
+            path,
+            options.fps,
+            options.linear,
+        )?));
+    }
+    if !path.exists() {
+        return Err(Error::io(
+            path,
+            std::io::Error::new(std::io::ErrorKind::NotFound, "no such file or folder"),
+        ));
+    }
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .unwrap_or("")
+        .to_ascii_lowercase();
+    match ext.as_str() {
+        "y4m" => Ok(Box::new(y4m::Y4mSource::open(path)?)),
+        "aedat4" => Ok(Box::new(aps::ApsSource::open(path)?)),
+        _ => Ok(Box::new(ffmpeg::FfmpegSource::open(path)?)),
+    }
+}
+
+/// Checks that frame times increase; returns the error for the offending frame.
+pub(crate) fn check_order(path: &Path, previous: Option<i64>, t: i64, index: usize) -> Result<()> {
+    match previous {
+        Some(p) if t <= p => Err(Error::format(
+            path,
+            format!("frame {index} at {t} us does not come after the previous one at {p} us"),
+        )),
+        _ => Ok(()),
+    }
+}

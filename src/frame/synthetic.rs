@@ -1,0 +1,106 @@
+//! Synthetic scenes rendered to frames, for tests and benchmarks: any function of time and
+//! pixel, sampled at a fixed rate.
+
+use super::{Frame, FrameSource};
+use crate::error::Result;
+
+/// A scene: linear luminance in `[0, 1]` at time `t` (us) and pixel centre `(x, y)`.
+pub type SceneFn = Box<dyn Fn(i64, u16, u16) -> f64 + Send>;
+
+/// Frames of a [`SceneFn`] at `fps`, `frames` of them from time 0.
+pub struct SceneSource {
+    name: String,
+    size: (u16, u16),
+    fps: f64,
+    frames: usize,
+    next: usize,
+    scene: SceneFn,
+}
+
+impl SceneSource {
+    /// A scene source.
+    pub fn new(
+        name: &str,
+        width: u16,
+        height: u16,
+        fps: f64,
+        frames: usize,
+        scene: SceneFn,
+    ) -> Self {
+        SceneSource {
+            name: name.to_string(),
+            size: (width, height),
+            fps,
+            frames,
+            next: 0,
+            scene,
+        }
+    }
+
+    /// Time of frame `i` in us.
+    pub fn frame_time(fps: f64, i: usize) -> i64 {
+        (i as f64 * 1e6 / fps).round() as i64
+    }
+
+    /// A vertical edge, bright (`high`) on its left and dark (`low`) on its right, moving right
+    /// at `speed` pixels per second from column `x0`. Pixels see the area-weighted mix, so the
+    /// luminance of column `x` ramps linearly while the edge crosses `[x, x + 1)`.
+    pub fn moving_edge(
+        width: u16,
+        height: u16,
+        fps: f64,
+        frames: usize,
+        x0: f64,
+        speed: f64,
+        (low, high): (f64, f64),
+    ) -> Self {
+        let scene = move |t: i64, x: u16, _y: u16| {
+            let edge = x0 + speed * t as f64 * 1e-6;
+            let covered = (edge - x as f64).clamp(0.0, 1.0);
+            low + (high - low) * covered
+        };
+        SceneSource::new("moving edge", width, height, fps, frames, Box::new(scene))
+    }
+
+    /// A still scene: a fixed pattern of gray levels.
+    pub fn still(width: u16, height: u16, fps: f64, frames: usize) -> Self {
+        let scene = |_t: i64, x: u16, y: u16| 0.1 + 0.8 * (((x / 8 + y / 8) % 5) as f64 / 4.0);
+        SceneSource::new("still pattern", width, height, fps, frames, Box::new(scene))
+    }
+}
+
+impl FrameSource for SceneSource {
+    fn size(&self) -> (u16, u16) {
+        self.size
+    }
+
+    fn next_frame(&mut self) -> Result<Option<Frame>> {
+        if self.next >= self.frames {
+            return Ok(None);
+        }
+        let t = Self::frame_time(self.fps, self.next);
+        self.next += 1;
+        let (w, h) = self.size;
+        let mut luma = Vec::with_capacity(w as usize * h as usize);
+        for y in 0..h {
+            for x in 0..w {
+                let v = (self.scene)(t, x, y);
+                let v = if v.is_finite() { v.clamp(0.0, 1.0) } else { 0.0 };
+                luma.push((v * 65535.0).round() as u16);
+            }
+        }
+        Ok(Some(Frame {
+            t,
+            width: w,
+            height: h,
+            luma,
+        }))
+    }
+
+    fn describe(&self) -> String {
+        format!(
+            "synthetic {} ({} x {}, {} fps)",
+            self.name, self.size.0, self.size.1, self.fps
+        )
+    }
+}

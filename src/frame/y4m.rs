@@ -1,0 +1,125 @@
+//! YUV4MPEG2 (`.y4m`) files as a frame source, through the `y4m` crate.
+//!
+//! Frame `i` is at `round(i * 1e6 * den / num)` us from the header's frame rate (the format
+//! carries no per-frame timestamps). 8-bit 4:2:0, 4:2:2, 4:4:4 and mono are accepted.
+
+use std::io::BufReader;
+use std::path::{Path, PathBuf};
+
+use super::color::{rgb_to_luma, ycbcr_to_rgb};
+use super::{Frame, FrameSource};
+use crate::error::{Error, Result};
+
+/// Reads a `.y4m` file.
+pub struct Y4mSource {
+    path: PathBuf,
+    decoder: y4m::Decoder<BufReader<std::fs::File>>,
+    size: (u16, u16),
+    rate: (usize, usize),
+    full_range: bool,
+    index: i64,
+}
+
+impl Y4mSource {
+    /// Opens `path` and reads its header.
+    pub fn open(path: &Path) -> Result<Self> {
+        let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+        let decoder = y4m::Decoder::new(BufReader::new(file))
+            .map_err(|e| Error::format(path, format!("not a readable Y4M file: {e:?}")))?;
+        let (w, h) = (decoder.get_width(), decoder.get_height());
+        let size = match (u16::try_from(w), u16::try_from(h)) {
+            (Ok(w), Ok(h)) if w > 0 && h > 0 => (w, h),
+            _ => return Err(Error::format(path, format!("frame size {w} x {h} unsupported"))),
+        };
+        if decoder.get_bit_depth() != 8 {
+            return Err(Error::format(path, "only 8-bit Y4M is supported"));
+        }
+        let r = decoder.get_framerate();
+        if r.num == 0 || r.den == 0 {
+            return Err(Error::format(path, "frame rate 0 in the header"));
+        }
+        let full_range = String::from_utf8_lossy(decoder.get_raw_params()).contains("COLORRANGE=FULL");
+        Ok(Y4mSource {
+            path: path.to_path_buf(),
+            decoder,
+            size,
+            rate: (r.num, r.den),
+            full_range,
+            index: 0,
+        })
+    }
+}
+
+impl FrameSource for Y4mSource {
+    fn size(&self) -> (u16, u16) {
+        self.size
+    }
+
+    fn next_frame(&mut self) -> Result<Option<Frame>> {
+        let (w, h) = (self.size.0 as usize, self.size.1 as usize);
+        let full = self.full_range;
+        let colorspace = self.decoder.get_colorspace();
+        let frame = match self.decoder.read_frame() {
+            Ok(f) => f,
+            Err(y4m::Error::EOF) => return Ok(None),
+            Err(e) => {
+                return Err(Error::format(
+                    &self.path,
+                    format!("frame {}: {e:?}", self.index),
+                ))
+            }
+        };
+        let (yp, up, vp) = (frame.get_y_plane(), frame.get_u_plane(), frame.get_v_plane());
+        let (sx, sy) = match colorspace {
+            y4m::Colorspace::C420
+            | y4m::Colorspace::C420jpeg
+            | y4m::Colorspace::C420paldv
+            | y4m::Colorspace::C420mpeg2 => (2, 2),
+            y4m::Colorspace::C422 => (2, 1),
+            y4m::Colorspace::C444 => (1, 1),
+            y4m::Colorspace::Cmono => (0, 0),
+            other => {
+                return Err(Error::format(
+                    &self.path,
+                    format!("colour space {other:?} is not supported"),
+                ))
+            }
+        };
+        let cw = if sx == 0 { 0 } else { w.div_ceil(sx) };
+        let mut luma = Vec::with_capacity(w * h);
+        for y in 0..h {
+            for x in 0..w {
+                let yy = yp.get(y * w + x).copied().unwrap_or(0);
+                let (cb, cr) = if sx == 0 {
+                    (128, 128)
+                } else {
+                    let i = (y / sy) * cw + x / sx;
+                    (
+                        up.get(i).copied().unwrap_or(128),
+                        vp.get(i).copied().unwrap_or(128),
+                    )
+                };
+                let (r, g, b) = ycbcr_to_rgb(yy, cb, cr, full);
+                luma.push(rgb_to_luma(r, g, b));
+            }
+        }
+        let t = (self.index as i128 * 1_000_000 * self.rate.1 as i128 + self.rate.0 as i128 / 2)
+            / self.rate.0 as i128;
+        self.index += 1;
+        Ok(Some(Frame {
+            t: t as i64,
+            width: self.size.0,
+            height: self.size.1,
+            luma,
+        }))
+    }
+
+    fn describe(&self) -> String {
+        format!(
+            "Y4M {} ({}/{} fps)",
+            self.path.display(),
+            self.rate.0,
+            self.rate.1
+        )
+    }
+}
