@@ -8,6 +8,7 @@ use std::path::Path;
 use serde::Deserialize;
 
 use crate::error::{Error, Result};
+use crate::stage1::Stage1Config;
 use crate::stage2::SamplerKind;
 use crate::voxel::DEFAULT_BINS;
 
@@ -15,6 +16,8 @@ use crate::voxel::DEFAULT_BINS;
 #[derive(Debug, Clone, Default, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Config {
+    /// Stage 1 (frames to events).
+    pub stage1: Stage1Config,
     /// Stage 2 (voxels to events).
     pub stage2: Stage2Config,
 }
@@ -60,6 +63,11 @@ impl Config {
                 format!("stage2.bins = {} is outside 2..=1024", config.stage2.bins),
             ));
         }
+        config
+            .stage1
+            .physics_config()
+            .validate()
+            .map_err(|e| Error::format(origin, e.to_string()))?;
         Ok(config)
     }
 

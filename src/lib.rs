@@ -7,6 +7,7 @@
 #![warn(missing_docs)]
 
 pub mod config;
+pub mod convert;
 pub mod error;
 pub mod eval;
 pub mod event;
@@ -15,6 +16,7 @@ pub mod frame;
 pub mod interval;
 pub mod metrics;
 pub mod sink;
+pub mod stage1;
 pub mod stage2;
 pub mod synthetic;
 pub mod transcode;

@@ -28,6 +28,8 @@ enum Command {
     /// Score simulated events against real recordings.
     #[command(subcommand)]
     Eval(Eval),
+    /// Convert frames (a video, an image folder, a .y4m, or an .aedat4's APS frames) to events.
+    Convert(ConvertArgs),
     /// Convert an event file to another format, streaming (.aedat4, .raw, .csv; IJRR .txt in).
     Transcode(TranscodeArgs),
     /// Print an event file's sensor size, event count, time span, rate and ON ratio.
@@ -66,6 +68,69 @@ enum Eval {
     /// timestamps (METE, NOE, PGER, C-METE, C-NOE). Without --events, runs on a built-in
     /// synthetic recording.
     Stage2(Stage2Args),
+    /// Stage 1: voxelize a simulated and a real event stream on the real recording's frame
+    /// intervals and score them (TPF1, TF1, RF1, accuracies, PMSE-2/4), plus the Stage 2
+    /// timestamp metrics between the two.
+    Stage1(Stage1Args),
+}
+
+#[derive(Args)]
+struct ConvertArgs {
+    /// Frames: a video file (through ffmpeg), a folder of PNG/JPEG images, a .y4m, or an
+    /// .aedat4 with APS frames.
+    input: PathBuf,
+    /// Output events; the extension picks the format: .aedat4, .raw, .csv.
+    #[arg(short, long)]
+    output: PathBuf,
+    /// TOML configuration file (flags override it).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Stage 1 model (the fast tier: physics).
+    #[arg(long, value_parser = ["physics"], default_value = "physics")]
+    stage1: String,
+    /// Sensor preset: davis346, dvxplorer, ideal.
+    #[arg(long)]
+    preset: Option<String>,
+    /// Stage 1 output: events (direct) or voxels (re-timed by the Stage 2 sampler).
+    #[arg(long, value_parser = ["events", "voxels"])]
+    mode: Option<String>,
+    /// Stage 2 sampler for --mode voxels: moment, ldati, ldati-random, even, random.
+    #[arg(long)]
+    sampler: Option<SamplerKind>,
+    /// Seed of mismatch, noise and sampling.
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Frame rate of an image folder without images.txt/times.txt.
+    #[arg(long)]
+    fps: Option<f64>,
+    /// Image values are linear in the light (raw sensor exports), not sRGB.
+    #[arg(long)]
+    linear: bool,
+    /// EVT version of a .raw output.
+    #[arg(long, value_parser = ["2", "3"], default_value = "3")]
+    evt: String,
+    /// Packet compression of an .aedat4 output: lz4, zstd, zstd-high or none.
+    #[arg(long, default_value = "lz4")]
+    compression: String,
+}
+
+#[derive(Args)]
+struct Stage1Args {
+    /// The real events (and, for an .aedat4 with APS frames, the frame intervals).
+    #[arg(long)]
+    real: PathBuf,
+    /// The simulated events.
+    #[arg(long)]
+    sim: PathBuf,
+    /// Frame times (an .aedat4 with APS frames or an IJRR images.txt) when --real has none.
+    #[arg(long, conflicts_with = "fps")]
+    frames: Option<PathBuf>,
+    /// Fixed frame rate for the intervals instead.
+    #[arg(long)]
+    fps: Option<f64>,
+    /// Print the scores as one JSON object.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Args)]
@@ -103,6 +168,8 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Eval(Eval::Stage2(args)) => eval_stage2(args),
+        Command::Eval(Eval::Stage1(args)) => eval_stage1(args),
+        Command::Convert(args) => convert(args),
         Command::Transcode(args) => transcode(args),
         Command::Info(args) => info(args),
     };
@@ -113,6 +180,169 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+fn convert(args: ConvertArgs) -> Result<()> {
+    use std::io::IsTerminal;
+    use v2ce::stage1::{Preset, Stage1Output};
+    let mut config = match &args.config {
+        Some(path) => Config::load(path)?,
+        None => Config::default(),
+    };
+    if let Some(p) = &args.preset {
+        config.stage1.preset = Preset::from_name(p)?;
+    }
+    match args.mode.as_deref() {
+        Some("voxels") => config.stage1.output = Stage1Output::Voxels,
+        Some(_) => config.stage1.output = Stage1Output::Events,
+        None => {}
+    }
+    if let Some(s) = args.sampler {
+        config.stage2.sampler = s;
+    }
+    if let Some(s) = args.seed {
+        config.stage1.seed = s;
+        config.stage2.seed = s;
+    }
+    let options = v2ce::frame::SourceOptions {
+        fps: args.fps,
+        linear: args.linear,
+    };
+    let mut source = v2ce::frame::open(&args.input, &options)?;
+    let (w, h) = source.size();
+    let evt = args.evt.parse::<u8>().ok();
+    let compression = format::Compression::from_name(&args.compression)?;
+    let fmt = format::Format::for_output(&args.output, evt, compression)?;
+    let sink = v2ce::sink::file::FileSink::create(&args.output, fmt, w, h)?;
+    let mut sinks: Vec<Box<dyn v2ce::sink::Sink>> = vec![Box::new(sink)];
+    eprintln!(
+        "v2ce: {} -> {} (physics, preset {}, {} x {})",
+        source.describe(),
+        args.output.display(),
+        config.stage1.preset.name(),
+        w,
+        h
+    );
+    let tty = std::io::stderr().is_terminal();
+    let report = v2ce::convert::convert(source.as_mut(), &config, &mut sinks, |r| {
+        if tty && r.frames % 10 == 0 {
+            eprint!(
+                "\r  {} frames, {} events, {:.1} frames/s   ",
+                r.frames,
+                r.events,
+                r.frames as f64 / r.seconds.max(1e-9)
+            );
+        }
+    })?;
+    if tty {
+        eprintln!();
+    }
+    eprintln!(
+        "v2ce: {} frames, {} events in {:.2} s ({:.0} frames/s); {} of {} tiles skipped as static",
+        report.frames,
+        report.events,
+        report.seconds,
+        report.frames as f64 / report.seconds.max(1e-9),
+        report.physics.tiles_skipped,
+        report.physics.tiles_skipped + report.physics.tiles_active
+    );
+    Ok(())
+}
+
+fn eval_stage1(args: Stage1Args) -> Result<()> {
+    let real_is_aedat = is_aedat4(&args.real);
+    let (real, frames) = if real_is_aedat && args.frames.is_none() && args.fps.is_none() {
+        let (rec, frames) = format::aedat4::read(&args.real)?;
+        (rec, Some(format::require_frames(&args.real, frames)?))
+    } else {
+        let frames = match &args.frames {
+            Some(p) => Some(format::read_frame_times(p)?),
+            None => None,
+        };
+        (format::read_events(&args.real)?, frames)
+    };
+    let intervals = match (frames, args.fps) {
+        (Some(f), _) => intervals_from_frames(&f)?,
+        (None, Some(fps)) => {
+            let ev = real.events.events();
+            let (Some(first), Some(last)) = (ev.first(), ev.last()) else {
+                return Err(Error::format(&args.real, "no events"));
+            };
+            fixed_intervals(first.t, last.t, fps)?
+        }
+        (None, None) => {
+            return Err(Error::invalid(
+                "frame intervals",
+                "--real has no APS frames: give --frames FILE or --fps F".to_string(),
+            ))
+        }
+    };
+    let sim = format::read_events(&args.sim)?;
+    if let Some(e) = sim
+        .events
+        .events()
+        .iter()
+        .find(|e| e.x >= real.width || e.y >= real.height)
+    {
+        return Err(Error::format(
+            &args.sim,
+            format!(
+                "event at ({}, {}) outside the real {} x {} sensor",
+                e.x, e.y, real.width, real.height
+            ),
+        ));
+    }
+    let m = v2ce::metrics::stage1::score(
+        real.events.events(),
+        sim.events.events(),
+        &intervals,
+        real.width,
+        real.height,
+        v2ce::voxel::DEFAULT_BINS,
+    )?;
+    let mut scorer = v2ce::metrics::Stage2Scorer::new();
+    for iv in &intervals {
+        scorer.add_interval(
+            *iv,
+            real.events.time_slice(iv.start(), iv.end()),
+            sim.events.time_slice(iv.start(), iv.end()),
+        );
+    }
+    let t = scorer.finish();
+    let mut out = std::io::stdout().lock();
+    let text = if args.json {
+        let mut v = serde_json::to_value(m).map_err(|e| Error::invalid("json", e.to_string()))?;
+        v["count_ratio"] = m.count_ratio().into();
+        v["c_mete_us"] = t.c_mete_us.into();
+        v["mete_us"] = t.mete_us.into();
+        v["pger"] = t.pger.into();
+        v.to_string()
+    } else {
+        format!(
+            "intervals {} ({} chunks); real events {}, simulated {} (ratio {:.3})\n\
+             TPF1 {:.4}  TF1 {:.4}  RF1 {:.4}\n\
+             TPAcc {:.4}  TAcc {:.4}  RAcc {:.4}\n\
+             PMSE-2 {:.5}  PMSE-4 {:.5}\n\
+             C-METE {:.1} us  METE {:.1} us  PGER {:.3}",
+            m.intervals,
+            m.chunks,
+            m.real_events,
+            m.sim_events,
+            m.count_ratio(),
+            m.tpf1,
+            m.tf1,
+            m.rf1,
+            m.tpacc,
+            m.tacc,
+            m.racc,
+            m.pmse2,
+            m.pmse4,
+            t.c_mete_us,
+            t.mete_us,
+            t.pger
+        )
+    };
+    writeln!(out, "{text}").map_err(|e| Error::io("stdout", e))
 }
 
 fn parse_size(text: &str) -> Result<(u16, u16)> {

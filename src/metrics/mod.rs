@@ -1,5 +1,7 @@
 //! Metrics that score simulated events against real recordings (V2CE_SPEC.md section 6).
 
+pub mod stage1;
 pub mod stage2;
 
+pub use stage1::Stage1Metrics;
 pub use stage2::{Stage2Metrics, Stage2Scorer};

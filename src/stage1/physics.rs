@@ -1,0 +1,503 @@
+//! The physical DVS pixel model: the fast tier of Stage 1.
+//!
+//! Per pixel, between two frames at `t0` and `t1`:
+//! 1. **Log front end with a lin-log toe.** The input is linear luminance `I` (fraction of full
+//!    scale) plus the photodiode's dark current `I_d`; the pixel sees `L = ln(I + I_d)` above the
+//!    knee `I_k` and the tangent line `ln(I_k) + (I + I_d - I_k) / I_k` below it, so near black
+//!    the response is linear and APS-like read noise on dark pixels does not turn into large log
+//!    swings (a DVS pixel is not an APS pixel).
+//! 2. **Photoreceptor bandwidth.** `L` drives a first-order low-pass whose cutoff grows with the
+//!    light, `f_c = f_max (I + I_d) / (1 + I_d)`, so dark pixels are slow and filter their
+//!    noise while bright ones follow fast edges. `f_max = 0` means an ideal, instant pixel.
+//! 3. **Change detector.** The filtered `L_p` is compared with the level memorised at the last
+//!    event; each crossing of `+theta_on` or `-theta_off` (per-pixel thresholds drawn once from a
+//!    normal law around the preset's means, the mismatch) is an event, timed by linear
+//!    interpolation inside the sub-step where it happens. The input is interpolated linearly in
+//!    `L` between frames and cut into sub-steps small enough (a quarter of the smaller threshold
+//!    per sub-step, up to `max_substeps`) that several crossings in one interval get distinct
+//!    times.
+//! 4. **Refractory period.** A crossing within `refractory_us` of the pixel's last event resets
+//!    the memorised level without an event, so no pixel fires faster than `1 / refractory`.
+//! 5. **Noise**, drawn sparsely so its cost follows the number of noise events: leak events (ON,
+//!    `leak_hz` per pixel), shot noise (either polarity, `shot_noise_hz` per pixel in the dark,
+//!    thinned by `1 / (1 + I / I_half)` with `I_half = 0.05`), and hot pixels (a fixed set of
+//!    `hot_pixel_fraction` pixels firing at `hot_pixel_hz`).
+//!
+//! **Work follows scene activity.** The frame is cut into tiles; a tile whose pixels are
+//! identical to the previous frame and whose pixels have settled (filter at its input, nothing
+//! pending) is skipped after a comparison of its rows, so a static scene costs little more than
+//! reading the frame.
+//!
+//! The same seed gives the same events; mismatch and hot pixels are drawn from it once, noise
+//! from it and the frame index.
+
+use rand::{Rng, SeedableRng};
+use rand_distr::{Distribution, Normal, Poisson};
+use rand_xoshiro::Xoshiro256PlusPlus;
+use serde::{Deserialize, Serialize};
+
+use crate::error::{Error, Result};
+use crate::event::{sort_events, Event};
+use crate::frame::{Frame, FULL_SCALE};
+
+/// Parameters of the pixel model (see the module docs). Every one is a config key.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PhysicsConfig {
+    /// Mean ON threshold, in log (natural) units of intensity.
+    pub threshold_on: f64,
+    /// Mean OFF threshold, in log units.
+    pub threshold_off: f64,
+    /// Standard deviation of the per-pixel thresholds (mismatch), in log units.
+    pub threshold_sigma: f64,
+    /// Refractory period after an event, us.
+    pub refractory_us: f64,
+    /// Photoreceptor cutoff at full-scale light, Hz (0: instant).
+    pub cutoff_hz: f64,
+    /// Dark current, as a fraction of full-scale luminance.
+    pub dark_current: f64,
+    /// Below this luminance (fraction of full scale) the log response is linearised.
+    pub linlog_knee: f64,
+    /// Leak (ON) events per pixel per second.
+    pub leak_hz: f64,
+    /// Shot-noise events per pixel per second in the dark.
+    pub shot_noise_hz: f64,
+    /// Fraction of pixels that are hot.
+    pub hot_pixel_fraction: f64,
+    /// Events per second of a hot pixel.
+    pub hot_pixel_hz: f64,
+    /// Most sub-steps per pixel and frame interval.
+    pub max_substeps: u32,
+    /// Side of the activity-gating tiles, pixels.
+    pub tile: u16,
+}
+
+impl Default for PhysicsConfig {
+    fn default() -> Self {
+        Preset::Davis346.config()
+    }
+}
+
+/// Sensor presets.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum Preset {
+    /// A DAVIS346 in daylight (calibrated on the davis346 recording; see the README).
+    #[default]
+    Davis346,
+    /// A DVXplorer: lower thresholds, no APS, faster front end.
+    Dvxplorer,
+    /// A noiseless ideal sensor: instant pixels, equal thresholds, no mismatch, no noise.
+    Ideal,
+}
+
+impl Preset {
+    /// All presets.
+    pub const ALL: [Preset; 3] = [Preset::Davis346, Preset::Dvxplorer, Preset::Ideal];
+
+    /// The preset's name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Preset::Davis346 => "davis346",
+            Preset::Dvxplorer => "dvxplorer",
+            Preset::Ideal => "ideal",
+        }
+    }
+
+    /// Parses a preset name.
+    pub fn from_name(name: &str) -> Result<Self> {
+        Preset::ALL
+            .into_iter()
+            .find(|p| p.name() == name)
+            .ok_or_else(|| {
+                Error::invalid(
+                    "preset",
+                    format!("'{name}' (expected davis346, dvxplorer or ideal)"),
+                )
+            })
+    }
+
+    /// The preset's parameters.
+    pub fn config(self) -> PhysicsConfig {
+        match self {
+            Preset::Davis346 => PhysicsConfig {
+                threshold_on: 0.35,
+                threshold_off: 0.35,
+                threshold_sigma: 0.03,
+                refractory_us: 100.0,
+                cutoff_hz: 200.0,
+                dark_current: 0.02,
+                linlog_knee: 0.08,
+                leak_hz: 0.02,
+                shot_noise_hz: 0.01,
+                hot_pixel_fraction: 0.0001,
+                hot_pixel_hz: 2.0,
+                max_substeps: 32,
+                tile: 16,
+            },
+            Preset::Dvxplorer => PhysicsConfig {
+                threshold_on: 0.25,
+                threshold_off: 0.25,
+                threshold_sigma: 0.03,
+                refractory_us: 50.0,
+                cutoff_hz: 500.0,
+                dark_current: 0.01,
+                linlog_knee: 0.05,
+                leak_hz: 0.05,
+                shot_noise_hz: 0.02,
+                hot_pixel_fraction: 0.0001,
+                hot_pixel_hz: 2.0,
+                max_substeps: 32,
+                tile: 16,
+            },
+            Preset::Ideal => PhysicsConfig {
+                threshold_on: 0.2,
+                threshold_off: 0.2,
+                threshold_sigma: 0.0,
+                refractory_us: 0.0,
+                cutoff_hz: 0.0,
+                dark_current: 0.0,
+                linlog_knee: 1.0 / FULL_SCALE as f64,
+                leak_hz: 0.0,
+                shot_noise_hz: 0.0,
+                hot_pixel_fraction: 0.0,
+                hot_pixel_hz: 0.0,
+                max_substeps: 64,
+                tile: 16,
+            },
+        }
+    }
+}
+
+impl PhysicsConfig {
+    /// Checks that every parameter is usable.
+    pub fn validate(&self) -> Result<()> {
+        let bad = |m: String| Err(Error::invalid("stage1.physics", m));
+        let finite_nonneg = [
+            ("threshold_sigma", self.threshold_sigma),
+            ("refractory_us", self.refractory_us),
+            ("cutoff_hz", self.cutoff_hz),
+            ("dark_current", self.dark_current),
+            ("leak_hz", self.leak_hz),
+            ("shot_noise_hz", self.shot_noise_hz),
+            ("hot_pixel_hz", self.hot_pixel_hz),
+        ];
+        for (name, v) in finite_nonneg {
+            if !(v.is_finite() && v >= 0.0) {
+                return bad(format!("{name} = {v} must be a finite number >= 0"));
+            }
+        }
+        for (name, v) in [
+            ("threshold_on", self.threshold_on),
+            ("threshold_off", self.threshold_off),
+        ] {
+            if !(v.is_finite() && (0.01..=5.0).contains(&v)) {
+                return bad(format!("{name} = {v} must be in [0.01, 5] log units"));
+            }
+        }
+        if !(self.linlog_knee > 0.0 && self.linlog_knee <= 1.0) {
+            return bad(format!("linlog_knee = {} must be in (0, 1]", self.linlog_knee));
+        }
+        if !(0.0..=1.0).contains(&self.hot_pixel_fraction) {
+            return bad(format!(
+                "hot_pixel_fraction = {} must be in [0, 1]",
+                self.hot_pixel_fraction
+            ));
+        }
+        if self.max_substeps == 0 || self.max_substeps > 4096 || self.tile == 0 {
+            return bad("max_substeps must be 1..=4096 and tile at least 1".into());
+        }
+        Ok(())
+    }
+}
+
+/// Counters of a simulation.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct PhysicsStats {
+    /// Frames stepped.
+    pub frames: u64,
+    /// Tiles processed / skipped as static.
+    pub tiles_active: u64,
+    /// Tiles skipped.
+    pub tiles_skipped: u64,
+    /// Signal events (threshold crossings).
+    pub signal_events: u64,
+    /// Crossings swallowed by the refractory period.
+    pub refractory_drops: u64,
+    /// Noise events (leak, shot, hot pixels).
+    pub noise_events: u64,
+}
+
+/// The simulator state for one sensor.
+pub struct PhysicsSim {
+    cfg: PhysicsConfig,
+    width: u16,
+    height: u16,
+    seed: u64,
+    /// `L` for every 16-bit luminance value.
+    log_lut: Vec<f32>,
+    prev_luma: Vec<u16>,
+    prev_t: Option<i64>,
+    l_in: Vec<f32>,
+    l_p: Vec<f32>,
+    l_ref: Vec<f32>,
+    thr_on: Vec<f32>,
+    thr_off: Vec<f32>,
+    last_event: Vec<i64>,
+    /// Per tile: every pixel is at rest (filter settled, nothing pending).
+    settled: Vec<bool>,
+    hot: Vec<u32>,
+    stats: PhysicsStats,
+}
+
+fn log_response(i: f64, cfg: &PhysicsConfig) -> f64 {
+    let x = i + cfg.dark_current;
+    let k = cfg.linlog_knee;
+    if x >= k {
+        x.ln()
+    } else {
+        k.ln() + (x - k) / k
+    }
+}
+
+impl PhysicsSim {
+    /// A simulator for a `width x height` sensor; `seed` fixes mismatch, hot pixels and noise.
+    pub fn new(cfg: PhysicsConfig, width: u16, height: u16, seed: u64) -> Result<Self> {
+        cfg.validate()?;
+        if width == 0 || height == 0 {
+            return Err(Error::invalid("sensor size", "0 pixels".to_string()));
+        }
+        let n = width as usize * height as usize;
+        let log_lut = (0..=FULL_SCALE as u32)
+            .map(|v| log_response(v as f64 / FULL_SCALE as f64, &cfg) as f32)
+            .collect();
+        let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed ^ 0x5EED_0F_71C5);
+        let mut draw = |mean: f64| -> Vec<f32> {
+            match Normal::new(mean, cfg.threshold_sigma) {
+                Ok(d) if cfg.threshold_sigma > 0.0 => (0..n)
+                    .map(|_| d.sample(&mut rng).max(0.01) as f32)
+                    .collect(),
+                _ => vec![mean as f32; n],
+            }
+        };
+        let thr_on = draw(cfg.threshold_on);
+        let thr_off = draw(cfg.threshold_off);
+        let hot_count = (cfg.hot_pixel_fraction * n as f64).round() as usize;
+        let mut hot: Vec<u32> = (0..hot_count).map(|_| rng.gen_range(0..n as u32)).collect();
+        hot.sort_unstable();
+        hot.dedup();
+        let tiles = (width as usize).div_ceil(cfg.tile as usize)
+            * (height as usize).div_ceil(cfg.tile as usize);
+        Ok(PhysicsSim {
+            width,
+            height,
+            seed,
+            log_lut,
+            prev_luma: Vec::new(),
+            prev_t: None,
+            l_in: vec![0.0; n],
+            l_p: vec![0.0; n],
+            l_ref: vec![0.0; n],
+            thr_on,
+            thr_off,
+            last_event: vec![i64::MIN / 2; n],
+            settled: vec![false; tiles],
+            hot,
+            cfg,
+            stats: PhysicsStats::default(),
+        })
+    }
+
+    /// The counters so far.
+    pub fn stats(&self) -> PhysicsStats {
+        self.stats
+    }
+
+    /// Takes the next frame and appends the events of the interval since the previous one to
+    /// `out`, sorted by [`Event::order_key`]. The first frame only sets the state.
+    pub fn step(&mut self, frame: &Frame, out: &mut Vec<Event>) -> Result<()> {
+        let n = self.width as usize * self.height as usize;
+        if (frame.width, frame.height) != (self.width, self.height) || frame.luma.len() != n {
+            return Err(Error::invalid(
+                "frame",
+                format!(
+                    "{} x {} ({} values) for a {} x {} sensor",
+                    frame.width,
+                    frame.height,
+                    frame.luma.len(),
+                    self.width,
+                    self.height
+                ),
+            ));
+        }
+        let Some(t0) = self.prev_t else {
+            for (i, &v) in frame.luma.iter().enumerate() {
+                let l = self.log_lut[v as usize];
+                self.l_in[i] = l;
+                self.l_p[i] = l;
+                self.l_ref[i] = l;
+            }
+            self.prev_luma.clone_from(&frame.luma);
+            self.prev_t = Some(frame.t);
+            self.settled.iter_mut().for_each(|s| *s = true);
+            self.stats.frames += 1;
+            return Ok(());
+        };
+        if frame.t <= t0 {
+            return Err(Error::invalid(
+                "frame time",
+                format!("{} us does not come after {t0} us", frame.t),
+            ));
+        }
+        let start = out.len();
+        let tile = self.cfg.tile as usize;
+        let (w, h) = (self.width as usize, self.height as usize);
+        let tiles_x = w.div_ceil(tile);
+        for ty in 0..h.div_ceil(tile) {
+            for tx in 0..tiles_x {
+                let ti = ty * tiles_x + tx;
+                let (x0, x1) = (tx * tile, ((tx + 1) * tile).min(w));
+                let (y0, y1) = (ty * tile, ((ty + 1) * tile).min(h));
+                let unchanged = (y0..y1).all(|y| {
+                    frame.luma[y * w + x0..y * w + x1] == self.prev_luma[y * w + x0..y * w + x1]
+                });
+                if unchanged && self.settled[ti] {
+                    self.stats.tiles_skipped += 1;
+                    continue;
+                }
+                self.stats.tiles_active += 1;
+                let mut settled = true;
+                for y in y0..y1 {
+                    for x in x0..x1 {
+                        settled &= self.pixel(y * w + x, frame, t0, out);
+                    }
+                }
+                self.settled[ti] = settled;
+            }
+        }
+        self.stats.signal_events += (out.len() - start) as u64;
+        self.noise(t0, frame, out);
+        self.prev_luma.copy_from_slice(&frame.luma);
+        self.prev_t = Some(frame.t);
+        self.stats.frames += 1;
+        sort_events(&mut out[start..]);
+        Ok(())
+    }
+
+    /// Advances pixel `i` from `t0` to the frame's time; returns whether it is at rest.
+    fn pixel(&mut self, i: usize, frame: &Frame, t0: i64, out: &mut Vec<Event>) -> bool {
+        let l1 = self.log_lut[frame.luma[i] as usize] as f64;
+        let l0 = self.l_in[i] as f64;
+        let mut lp = self.l_p[i] as f64;
+        let mut lref = self.l_ref[i] as f64;
+        let (on, off) = (self.thr_on[i] as f64, self.thr_off[i] as f64);
+        let dt = (frame.t - t0) as f64;
+        let cfg = &self.cfg;
+        let span = (l1 - l0).abs().max((l1 - lp).abs());
+        if span < 1e-5 && lp - lref < on && lref - lp < off {
+            self.l_in[i] = l1 as f32;
+            self.l_p[i] = l1 as f32;
+            return true;
+        }
+        let mut steps = (span / (0.25 * on.min(off))).ceil() as u32;
+        // The filter needs steps short against its time constant to track an edge.
+        let intensity = frame.luma[i] as f64 / FULL_SCALE as f64;
+        let tau_us = if cfg.cutoff_hz > 0.0 {
+            let fc = cfg.cutoff_hz * (intensity + cfg.dark_current) / (1.0 + cfg.dark_current);
+            1e6 / (2.0 * std::f64::consts::PI * fc.max(1e-3))
+        } else {
+            0.0
+        };
+        if tau_us > 0.0 {
+            steps = steps.max((dt / tau_us).ceil().min(8.0) as u32);
+        }
+        let steps = steps.clamp(1, cfg.max_substeps);
+        let hstep = dt / steps as f64;
+        let alpha = if tau_us > 0.0 {
+            1.0 - (-hstep / tau_us).exp()
+        } else {
+            1.0
+        };
+        let (x, y) = ((i % self.width as usize) as u16, (i / self.width as usize) as u16);
+        let mut last = self.last_event[i];
+        let refractory = cfg.refractory_us;
+        for k in 1..=steps {
+            let target = l0 + (l1 - l0) * k as f64 / steps as f64;
+            let prev = lp;
+            lp += alpha * (target - lp);
+            let t_start = t0 as f64 + hstep * (k - 1) as f64;
+            loop {
+                let (level, polarity) = if lp - lref >= on {
+                    (lref + on, true)
+                } else if lref - lp >= off {
+                    (lref - off, false)
+                } else {
+                    break;
+                };
+                let frac = if (lp - prev).abs() > 1e-12 {
+                    ((level - prev) / (lp - prev)).clamp(0.0, 1.0)
+                } else {
+                    1.0
+                };
+                let te = (t_start + frac * hstep).round() as i64;
+                let te = te.clamp(t0 + 1, frame.t);
+                lref = level;
+                if ((te - last) as f64) < refractory {
+                    self.stats.refractory_drops += 1;
+                    continue;
+                }
+                last = te;
+                out.push(Event::new(te, x, y, polarity));
+            }
+        }
+        self.l_in[i] = l1 as f32;
+        self.l_p[i] = lp as f32;
+        self.l_ref[i] = lref as f32;
+        self.last_event[i] = last;
+        (lp - l1).abs() < 1e-5
+    }
+
+    /// Sparse noise events in `(t0, frame.t]`.
+    fn noise(&mut self, t0: i64, frame: &Frame, out: &mut Vec<Event>) {
+        let cfg = &self.cfg;
+        let dt_s = (frame.t - t0) as f64 * 1e-6;
+        let n = self.width as usize * self.height as usize;
+        let mut rng =
+            Xoshiro256PlusPlus::seed_from_u64(self.seed ^ (self.stats.frames.wrapping_mul(0x9E37_79B9_7F4A_7C15)));
+        let count = |rate: f64, rng: &mut Xoshiro256PlusPlus| -> u64 {
+            let mean = rate * dt_s;
+            match Poisson::new(mean) {
+                Ok(p) if mean > 0.0 => p.sample(rng) as u64,
+                _ => 0,
+            }
+        };
+        let before = out.len();
+        let w = self.width as usize;
+        let mut emit = |i: usize, on: bool, rng: &mut Xoshiro256PlusPlus, last: &mut [i64]| {
+            let t = rng.gen_range(t0 + 1..=frame.t);
+            if ((t - last[i]) as f64) >= cfg.refractory_us {
+                last[i] = last[i].max(t);
+                out.push(Event::new(t, (i % w) as u16, (i / w) as u16, on));
+            }
+        };
+        for _ in 0..count(cfg.leak_hz * n as f64, &mut rng) {
+            let i = rng.gen_range(0..n);
+            emit(i, true, &mut rng, &mut self.last_event);
+        }
+        for _ in 0..count(cfg.shot_noise_hz * n as f64, &mut rng) {
+            let i = rng.gen_range(0..n);
+            let intensity = frame.luma[i] as f64 / FULL_SCALE as f64;
+            if rng.gen::<f64>() < 1.0 / (1.0 + intensity / 0.05) {
+                let on = rng.gen::<bool>();
+                emit(i, on, &mut rng, &mut self.last_event);
+            }
+        }
+        for h in 0..self.hot.len() {
+            let i = self.hot[h] as usize;
+            for _ in 0..count(cfg.hot_pixel_hz, &mut rng) {
+                emit(i, true, &mut rng, &mut self.last_event);
+            }
+        }
+        self.stats.noise_events += (out.len() - before) as u64;
+    }
+}
