@@ -159,7 +159,9 @@ impl FrameSource for ImageFolder {
                     })
                     .collect()
             } else {
-                rgb.pixels().map(|p| rgb_to_luma(p[0], p[1], p[2])).collect()
+                rgb.pixels()
+                    .map(|p| rgb_to_luma(p[0], p[1], p[2]))
+                    .collect()
             }
         } else {
             let gray = img.to_luma8();

@@ -85,7 +85,11 @@ impl FrameSource for SceneSource {
         for y in 0..h {
             for x in 0..w {
                 let v = (self.scene)(t, x, y);
-                let v = if v.is_finite() { v.clamp(0.0, 1.0) } else { 0.0 };
+                let v = if v.is_finite() {
+                    v.clamp(0.0, 1.0)
+                } else {
+                    0.0
+                };
                 luma.push((v * 65535.0).round() as u16);
             }
         }

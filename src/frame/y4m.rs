@@ -29,7 +29,12 @@ impl Y4mSource {
         let (w, h) = (decoder.get_width(), decoder.get_height());
         let size = match (u16::try_from(w), u16::try_from(h)) {
             (Ok(w), Ok(h)) if w > 0 && h > 0 => (w, h),
-            _ => return Err(Error::format(path, format!("frame size {w} x {h} unsupported"))),
+            _ => {
+                return Err(Error::format(
+                    path,
+                    format!("frame size {w} x {h} unsupported"),
+                ))
+            }
         };
         if decoder.get_bit_depth() != 8 {
             return Err(Error::format(path, "only 8-bit Y4M is supported"));
@@ -38,7 +43,8 @@ impl Y4mSource {
         if r.num == 0 || r.den == 0 {
             return Err(Error::format(path, "frame rate 0 in the header"));
         }
-        let full_range = String::from_utf8_lossy(decoder.get_raw_params()).contains("COLORRANGE=FULL");
+        let full_range =
+            String::from_utf8_lossy(decoder.get_raw_params()).contains("COLORRANGE=FULL");
         Ok(Y4mSource {
             path: path.to_path_buf(),
             decoder,
@@ -69,7 +75,11 @@ impl FrameSource for Y4mSource {
                 ))
             }
         };
-        let (yp, up, vp) = (frame.get_y_plane(), frame.get_u_plane(), frame.get_v_plane());
+        let (yp, up, vp) = (
+            frame.get_y_plane(),
+            frame.get_u_plane(),
+            frame.get_v_plane(),
+        );
         let (sx, sy) = match colorspace {
             y4m::Colorspace::C420
             | y4m::Colorspace::C420jpeg

@@ -165,7 +165,10 @@ pub fn score(
     for chunk in intervals.chunks(CHUNK_INTERVALS) {
         let mut conf = [Confusion::default(); 3];
         let nodes_total = bins * chunk.len();
-        let mut pools = [Pool::new(2, nodes_total, w, h), Pool::new(4, nodes_total, w, h)];
+        let mut pools = [
+            Pool::new(2, nodes_total, w, h),
+            Pool::new(4, nodes_total, w, h),
+        ];
         for (l, &iv) in chunk.iter().enumerate() {
             let r = &real[slice(real, iv)];
             let s = &sim[slice(sim, iv)];

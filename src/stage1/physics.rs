@@ -121,8 +121,8 @@ impl Preset {
     pub fn config(self) -> PhysicsConfig {
         match self {
             Preset::Davis346 => PhysicsConfig {
-                threshold_on: 0.35,
-                threshold_off: 0.35,
+                threshold_on: 0.28,
+                threshold_off: 0.28,
                 threshold_sigma: 0.03,
                 refractory_us: 100.0,
                 cutoff_hz: 200.0,
@@ -196,7 +196,10 @@ impl PhysicsConfig {
             }
         }
         if !(self.linlog_knee > 0.0 && self.linlog_knee <= 1.0) {
-            return bad(format!("linlog_knee = {} must be in (0, 1]", self.linlog_knee));
+            return bad(format!(
+                "linlog_knee = {} must be in (0, 1]",
+                self.linlog_knee
+            ));
         }
         if !(0.0..=1.0).contains(&self.hot_pixel_fraction) {
             return bad(format!(
@@ -350,6 +353,7 @@ impl PhysicsSim {
             ));
         }
         let start = out.len();
+        let filter = self.filter_table((frame.t - t0) as f64);
         let tile = self.cfg.tile as usize;
         let (w, h) = (self.width as usize, self.height as usize);
         let tiles_x = w.div_ceil(tile);
@@ -369,7 +373,10 @@ impl PhysicsSim {
                 let mut settled = true;
                 for y in y0..y1 {
                     for x in x0..x1 {
-                        settled &= self.pixel(y * w + x, frame, t0, out);
+                        let i = y * w + x;
+                        let v = frame.luma[i];
+                        let f = filter[(v >> 8) as usize];
+                        settled &= self.pixel(i, v, t0, frame.t, f, out);
                     }
                 }
                 self.settled[ti] = settled;
@@ -384,77 +391,131 @@ impl PhysicsSim {
         Ok(())
     }
 
-    /// Advances pixel `i` from `t0` to the frame's time; returns whether it is at rest.
-    fn pixel(&mut self, i: usize, frame: &Frame, t0: i64, out: &mut Vec<Event>) -> bool {
-        let l1 = self.log_lut[frame.luma[i] as usize] as f64;
-        let l0 = self.l_in[i] as f64;
-        let mut lp = self.l_p[i] as f64;
+    /// Time constant (us) and decay over `dt` for each of 256 light levels: `(tau, e^(-dt/tau))`,
+    /// `tau = 0` for an instant pixel.
+    fn filter_table(&self, dt: f64) -> Vec<(f32, f32)> {
+        let cfg = &self.cfg;
+        (0..256)
+            .map(|b| {
+                if cfg.cutoff_hz <= 0.0 {
+                    return (0.0, 0.0);
+                }
+                let intensity = (b as f64 + 0.5) / 256.0;
+                let fc = cfg.cutoff_hz * (intensity + cfg.dark_current) / (1.0 + cfg.dark_current);
+                let tau = 1e6 / (2.0 * std::f64::consts::PI * fc.max(1e-3));
+                (tau as f32, (-dt / tau).exp() as f32)
+            })
+            .collect()
+    }
+
+    /// Advances pixel `i` from `t0` to `t1`; returns whether it is at rest.
+    ///
+    /// The filter is solved exactly for the input's linear ramp in `L`. When the filter's
+    /// path cannot reach a threshold (it stays between its start and the input's ends), the
+    /// pixel is updated in closed form; otherwise it is sub-stepped and its crossings timed.
+    #[allow(clippy::too_many_arguments)]
+    fn pixel(
+        &mut self,
+        i: usize,
+        luma: u16,
+        t0: i64,
+        t1: i64,
+        filter: (f32, f32),
+        out: &mut Vec<Event>,
+    ) -> bool {
+        let l1 = self.log_lut[luma as usize];
+        let l0 = self.l_in[i];
+        let y0 = self.l_p[i];
+        let lref = self.l_ref[i];
+        let (on, off) = (self.thr_on[i], self.thr_off[i]);
+        let (tau, decay) = filter;
+        let dt = (t1 - t0) as f32;
+        let y1 = if tau > 0.0 {
+            let rt = (l1 - l0) / dt * tau;
+            l1 - rt + (y0 - l0 + rt) * decay
+        } else {
+            l1
+        };
+        let hi = y0.max(l0).max(l1).max(y1);
+        let lo = y0.min(l0).min(l1).min(y1);
+        if hi - lref < on && lref - lo < off {
+            self.l_in[i] = l1;
+            self.l_p[i] = y1;
+            return l0 == l1 && (y1 - l1).abs() < 1e-4;
+        }
+        self.crossings(i, l0 as f64, l1 as f64, t0, t1, tau as f64, out);
+        false
+    }
+
+    /// The slow path of [`PhysicsSim::pixel`]: sub-steps with timed crossings.
+    #[allow(clippy::too_many_arguments)]
+    fn crossings(
+        &mut self,
+        i: usize,
+        l0: f64,
+        l1: f64,
+        t0: i64,
+        t1: i64,
+        tau: f64,
+        out: &mut Vec<Event>,
+    ) {
+        let mut y = self.l_p[i] as f64;
         let mut lref = self.l_ref[i] as f64;
         let (on, off) = (self.thr_on[i] as f64, self.thr_off[i] as f64);
-        let dt = (frame.t - t0) as f64;
-        let cfg = &self.cfg;
-        let span = (l1 - l0).abs().max((l1 - lp).abs());
-        if span < 1e-5 && lp - lref < on && lref - lp < off {
-            self.l_in[i] = l1 as f32;
-            self.l_p[i] = l1 as f32;
-            return true;
-        }
+        let dt = (t1 - t0) as f64;
+        let span = (l1 - l0).abs().max((l1 - y).abs());
         let mut steps = (span / (0.25 * on.min(off))).ceil() as u32;
-        // The filter needs steps short against its time constant to track an edge.
-        let intensity = frame.luma[i] as f64 / FULL_SCALE as f64;
-        let tau_us = if cfg.cutoff_hz > 0.0 {
-            let fc = cfg.cutoff_hz * (intensity + cfg.dark_current) / (1.0 + cfg.dark_current);
-            1e6 / (2.0 * std::f64::consts::PI * fc.max(1e-3))
-        } else {
-            0.0
-        };
-        if tau_us > 0.0 {
-            steps = steps.max((dt / tau_us).ceil().min(8.0) as u32);
+        if tau > 0.0 {
+            // Short steps against the time constant, so the filter's curve is followed.
+            steps = steps.max((dt / tau).ceil().min(8.0) as u32);
         }
-        let steps = steps.clamp(1, cfg.max_substeps);
-        let hstep = dt / steps as f64;
-        let alpha = if tau_us > 0.0 {
-            1.0 - (-hstep / tau_us).exp()
-        } else {
-            1.0
-        };
-        let (x, y) = ((i % self.width as usize) as u16, (i / self.width as usize) as u16);
+        let steps = steps.clamp(1, self.cfg.max_substeps);
+        let h = dt / steps as f64;
+        let decay = if tau > 0.0 { (-h / tau).exp() } else { 0.0 };
+        let rt = (l1 - l0) / dt * tau;
+        let (x, yy) = (
+            (i % self.width as usize) as u16,
+            (i / self.width as usize) as u16,
+        );
         let mut last = self.last_event[i];
-        let refractory = cfg.refractory_us;
+        let refractory = self.cfg.refractory_us;
         for k in 1..=steps {
-            let target = l0 + (l1 - l0) * k as f64 / steps as f64;
-            let prev = lp;
-            lp += alpha * (target - lp);
-            let t_start = t0 as f64 + hstep * (k - 1) as f64;
+            let u_prev = l0 + (l1 - l0) * (k - 1) as f64 / steps as f64;
+            let u = l0 + (l1 - l0) * k as f64 / steps as f64;
+            let prev = y;
+            y = if tau > 0.0 {
+                u - rt + (prev - u_prev + rt) * decay
+            } else {
+                u
+            };
+            let t_start = t0 as f64 + h * (k - 1) as f64;
             loop {
-                let (level, polarity) = if lp - lref >= on {
+                let (level, polarity) = if y - lref >= on {
                     (lref + on, true)
-                } else if lref - lp >= off {
+                } else if lref - y >= off {
                     (lref - off, false)
                 } else {
                     break;
                 };
-                let frac = if (lp - prev).abs() > 1e-12 {
-                    ((level - prev) / (lp - prev)).clamp(0.0, 1.0)
+                let frac = if (y - prev).abs() > 1e-12 {
+                    ((level - prev) / (y - prev)).clamp(0.0, 1.0)
                 } else {
                     1.0
                 };
-                let te = (t_start + frac * hstep).round() as i64;
-                let te = te.clamp(t0 + 1, frame.t);
+                let te = ((t_start + frac * h).round() as i64).clamp(t0 + 1, t1);
                 lref = level;
                 if ((te - last) as f64) < refractory {
                     self.stats.refractory_drops += 1;
                     continue;
                 }
                 last = te;
-                out.push(Event::new(te, x, y, polarity));
+                out.push(Event::new(te, x, yy, polarity));
             }
         }
         self.l_in[i] = l1 as f32;
-        self.l_p[i] = lp as f32;
+        self.l_p[i] = y as f32;
         self.l_ref[i] = lref as f32;
         self.last_event[i] = last;
-        (lp - l1).abs() < 1e-5
     }
 
     /// Sparse noise events in `(t0, frame.t]`.
@@ -462,8 +523,9 @@ impl PhysicsSim {
         let cfg = &self.cfg;
         let dt_s = (frame.t - t0) as f64 * 1e-6;
         let n = self.width as usize * self.height as usize;
-        let mut rng =
-            Xoshiro256PlusPlus::seed_from_u64(self.seed ^ (self.stats.frames.wrapping_mul(0x9E37_79B9_7F4A_7C15)));
+        let mut rng = Xoshiro256PlusPlus::seed_from_u64(
+            self.seed ^ (self.stats.frames.wrapping_mul(0x9E37_79B9_7F4A_7C15)),
+        );
         let count = |rate: f64, rng: &mut Xoshiro256PlusPlus| -> u64 {
             let mean = rate * dt_s;
             match Poisson::new(mean) {
