@@ -157,3 +157,74 @@ fn every_recording_round_trips_through_every_format() {
     }
     std::fs::remove_dir_all(&out).unwrap();
 }
+
+/// The APS frames read from the AEDAT 4.0 file and from the IJRR PNG export (as linear values)
+/// are the same images, 40 ms apart.
+#[test]
+fn aps_frames_match_the_png_export() {
+    use v2ce::frame;
+    let d = data_or_skip!("aps_frames_match_the_png_export");
+    let mut aps = frame::open(&d.join("davis346/davis346.aedat4"), &Default::default()).unwrap();
+    let options = frame::SourceOptions {
+        fps: None,
+        linear: true,
+    };
+    let mut png = frame::open(&d.join("davis346/ijrr_export"), &options).unwrap();
+    assert_eq!(aps.size(), (346, 260));
+    let mut n = 0;
+    while let Some(a) = aps.next_frame().unwrap() {
+        let b = png.next_frame().unwrap().unwrap();
+        assert_eq!(a.luma, b.luma, "frame {n}");
+        assert_eq!(a.t - IJRR_T0, b.t, "frame {n}");
+        n += 1;
+    }
+    assert!(png.next_frame().unwrap().is_none());
+    assert_eq!(n, 59);
+}
+
+/// The physics tier on the davis346 APS frames, scored against the real events: the default
+/// DAVIS346 preset beats the noiseless ideal sensor on TF1 and TPF1 with an event count within
+/// 0.5 to 2 times the real one.
+#[test]
+fn physics_tier_on_davis346_beats_the_noiseless_sensor() {
+    use v2ce::config::Config;
+    use v2ce::stage1::Preset;
+    let d = data_or_skip!("physics_tier_on_davis346_beats_the_noiseless_sensor");
+    let path = d.join("davis346/davis346.aedat4");
+    let (real, frames) = format::aedat4::read(&path).unwrap();
+    let intervals = intervals_from_frames(&frames).unwrap();
+    let score = |preset: Preset| {
+        let mut config = Config::default();
+        config.stage1.preset = preset;
+        let mut source = v2ce::frame::open(&path, &Default::default()).unwrap();
+        let out = std::env::temp_dir().join(format!(
+            "v2ce-p-{}-{}.csv",
+            preset.name(),
+            std::process::id()
+        ));
+        let sink = v2ce::sink::file::FileSink::create(&out, format::Format::Csv, 346, 260).unwrap();
+        let mut sinks: Vec<Box<dyn v2ce::sink::Sink>> = vec![Box::new(sink)];
+        v2ce::convert::convert(source.as_mut(), &config, &mut sinks, |_| {}).unwrap();
+        let sim = format::read_events(&out).unwrap();
+        std::fs::remove_file(&out).unwrap();
+        v2ce::metrics::stage1::score(
+            real.events.events(),
+            sim.events.events(),
+            &intervals,
+            346,
+            260,
+            10,
+        )
+        .unwrap()
+    };
+    let default = score(Preset::Davis346);
+    let ideal = score(Preset::Ideal);
+    eprintln!("davis346 preset: {default:?}\nideal: {ideal:?}");
+    assert!(default.tf1 > ideal.tf1 && default.tpf1 > ideal.tpf1);
+    assert!(
+        (0.5..=2.0).contains(&default.count_ratio()),
+        "{}",
+        default.count_ratio()
+    );
+    assert!(default.tf1 >= 0.40, "{}", default.tf1);
+}

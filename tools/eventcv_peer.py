@@ -2,6 +2,10 @@
 its events as CSV (t_us,x,y,on) on the recording's clock, for `v2ce eval stage1`. Also times it.
 
     RAYON_NUM_THREADS=1 python tools/eventcv_peer.py REC.aedat4 OUT.csv [--noise] [--repeat N]
+    RAYON_NUM_THREADS=1 python tools/eventcv_peer.py --npy FRAMES.npy FPS [--noise] [--repeat N]
+
+The second form only times eventcv on uint8 frames [N, H, W] and prints `FPS <frames/s>`
+(used by `cargo bench --bench stage1`).
 
 Frames go to eventcv as the 8-bit APS values (which it linearises as sRGB), at the recording's
 mean frame rate; event times are shifted so eventcv's time 0 is the first frame's mid-exposure.
@@ -15,10 +19,25 @@ import numpy as np
 import eventcv
 
 
+def time_npy(argv, noise, repeat):
+    frames = np.load(argv[2])
+    fps = float(argv[3])
+    kwargs = {} if noise else dict(sigma_thres=0.0, leak_rate_hz=0.0, shot_noise_rate_hz=0.0)
+    best = None
+    for _ in range(repeat):
+        start = time.perf_counter()
+        events = eventcv.simulate(frames, fps=fps, **kwargs)
+        took = time.perf_counter() - start
+        best = took if best is None else min(best, took)
+    print(f"FPS {len(frames) / best:.2f} EVENTS {len(events)}")
+
+
 def main(argv):
-    path, out = argv[1], argv[2]
     noise = "--noise" in argv
     repeat = int(argv[argv.index("--repeat") + 1]) if "--repeat" in argv else 1
+    if argv[1] == "--npy":
+        return time_npy(argv, noise, repeat)
+    path, out = argv[1], argv[2]
     frames, times = [], []
     for packet in aedat.Decoder(path):
         if "frame" in packet:

@@ -67,11 +67,26 @@ fn probe_size(path: &Path) -> Result<(u16, u16)> {
     }
 }
 
-/// Parses `pts_time:12.345` out of a `showinfo` line, in us.
-fn parse_pts_time(line: &str) -> Option<i64> {
-    let rest = line.split("pts_time:").nth(1)?;
-    let value = rest.split_whitespace().next()?;
-    crate::format::ijrr::parse_seconds_us(value)
+/// Parses `config in time_base: N/D` out of a `showinfo` line.
+fn parse_time_base(line: &str) -> Option<(i128, i128)> {
+    let rest = line.split("config in time_base:").nth(1)?;
+    let (n, d) = rest.split(',').next()?.trim().split_once('/')?;
+    let (n, d) = (n.parse().ok()?, d.parse().ok()?);
+    (n > 0 && d > 0).then_some((n, d))
+}
+
+/// Parses the integer `pts:` of a `showinfo` frame line and converts it to us with the stream's
+/// time base, exactly (`pts_time` is printed with six significant digits only).
+fn parse_pts_us(line: &str, (num, den): (i128, i128)) -> Option<i64> {
+    let rest = line.split(" pts:").nth(1)?;
+    let pts: i128 = rest.split_whitespace().next()?.parse().ok()?;
+    let us = pts * num * 1_000_000;
+    let rounded = if us >= 0 {
+        (us + den / 2) / den
+    } else {
+        (us - den / 2) / den
+    };
+    i64::try_from(rounded).ok()
 }
 
 impl FfmpegSource {
@@ -79,7 +94,14 @@ impl FfmpegSource {
     pub fn open(path: &Path) -> Result<Self> {
         let size = probe_size(path)?;
         let mut child = Command::new("ffmpeg")
-            .args(["-nostdin", "-hide_banner", "-loglevel", "info", "-i"])
+            .args([
+                "-nostdin",
+                "-hide_banner",
+                "-nostats",
+                "-loglevel",
+                "info",
+                "-i",
+            ])
             .arg(path)
             .args([
                 "-map",
@@ -107,9 +129,12 @@ impl FfmpegSource {
         let stderr_tail = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
         let tail = stderr_tail.clone();
         std::thread::spawn(move || {
+            let mut time_base = None;
             for line in BufReader::new(stderr).lines().map_while(|l| l.ok()) {
-                if line.contains("Parsed_showinfo") && line.contains(" n:") {
-                    if let Some(t) = parse_pts_time(&line) {
+                if let Some(tb) = parse_time_base(&line) {
+                    time_base = Some(tb);
+                } else if line.contains("Parsed_showinfo") && line.contains(" n:") {
+                    if let Some(t) = time_base.and_then(|tb| parse_pts_us(&line, tb)) {
                         if tx.send(t).is_err() {
                             break;
                         }
@@ -204,8 +229,15 @@ impl Drop for FfmpegSource {
 mod tests {
     #[test]
     fn showinfo_times() {
-        let line = "[Parsed_showinfo_0 @ 0x55] n:   3 pts:  3003 pts_time:0.1001   duration: 1001";
-        assert_eq!(super::parse_pts_time(line), Some(100_100));
-        assert_eq!(super::parse_pts_time("n: 0 pts: 0"), None);
+        let tb =
+            "[Parsed_showinfo_0 @ 0x5] config in time_base: 1001/30000, frame_rate: 30000/1001";
+        let tb = super::parse_time_base(tb).unwrap();
+        assert_eq!(tb, (1001, 30000));
+        let line = "[Parsed_showinfo_0 @ 0x55] n:   1 pts:      1 pts_time:0.0333667 pos: -1";
+        assert_eq!(super::parse_pts_us(line, tb), Some(33_367));
+        // Past 1000 s, where pts_time's six digits would lose a millisecond.
+        let line = "[Parsed_showinfo_0 @ 0x55] n: 40000 pts:  40000 pts_time:1334.67";
+        assert_eq!(super::parse_pts_us(line, tb), Some(1_334_666_667));
+        assert_eq!(super::parse_pts_us("n: 0", tb), None);
     }
 }

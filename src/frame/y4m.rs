@@ -100,14 +100,15 @@ impl FrameSource for Y4mSource {
         for y in 0..h {
             for x in 0..w {
                 let yy = yp.get(y * w + x).copied().unwrap_or(0);
-                let (cb, cr) = if sx == 0 {
-                    (128, 128)
-                } else {
-                    let i = (y / sy) * cw + x / sx;
-                    (
-                        up.get(i).copied().unwrap_or(128),
-                        vp.get(i).copied().unwrap_or(128),
-                    )
+                let (cb, cr) = match (x.checked_div(sx), y.checked_div(sy)) {
+                    (Some(cx), Some(cy)) => {
+                        let i = cy * cw + cx;
+                        (
+                            up.get(i).copied().unwrap_or(128),
+                            vp.get(i).copied().unwrap_or(128),
+                        )
+                    }
+                    _ => (128, 128),
                 };
                 let (r, g, b) = ycbcr_to_rgb(yy, cb, cr, full);
                 luma.push(rgb_to_luma(r, g, b));

@@ -274,7 +274,7 @@ impl PhysicsSim {
         let log_lut = (0..=FULL_SCALE as u32)
             .map(|v| log_response(v as f64 / FULL_SCALE as f64, &cfg) as f32)
             .collect();
-        let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed ^ 0x5EED_0F_71C5);
+        let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed ^ 0x005E_ED0F_71C5);
         let mut draw = |mean: f64| -> Vec<f32> {
             match Normal::new(mean, cfg.threshold_sigma) {
                 Ok(d) if cfg.threshold_sigma > 0.0 => (0..n)
