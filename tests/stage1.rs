@@ -22,12 +22,12 @@ fn run(cfg: PhysicsConfig, source: &mut dyn FrameSource, seed: u64) -> (Vec<Even
 /// `t_k = t_x + (I_k - low) / ((high - low) v)`, for `k = 1 .. floor(ln(high/low) / C)`.
 #[test]
 fn moving_edge_crossing_times_match_the_analytic_ones() {
-    let (low, high, v, x0, fps) = (0.05, 0.8, 100.0, 2.0, 1000.0);
+    let (low, high, v, x0, fps): (f64, f64, f64, f64, f64) = (0.05, 0.8, 100.0, 2.0, 1000.0);
     let cfg = Preset::Ideal.config();
     let c = cfg.threshold_on;
     let mut src = SceneSource::moving_edge(24, 4, fps, 200, x0, v, (low, high));
     let (events, _) = run(cfg, &mut src, 0);
-    let per_pixel = ((high / low) as f64).ln() / c;
+    let per_pixel: f64 = (high / low).ln() / c;
     let expected_count = per_pixel.floor() as usize;
     let mut worst = 0.0f64;
     let mut total = 0.0;
