@@ -7,7 +7,7 @@
 //! `.venv`, `RAYON_NUM_THREADS=1`, noise off and on) is timed on the same 8-bit frames, best of
 //! 3, via `tools/eventcv_peer.py`; it is skipped with a note when the venv lacks it.
 //!
-//! `cargo bench --bench stage1` prints a Markdown table.
+//! `cargo bench --bench stage1` prints a Markdown table (`V2CE_BENCH_NO_PEER=1` skips eventcv).
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -156,6 +156,9 @@ fn write_npy(path: &Path, w: &Workload) -> std::io::Result<()> {
 }
 
 fn eventcv(w: &Workload, noise: bool) -> Option<f64> {
+    if std::env::var_os("V2CE_BENCH_NO_PEER").is_some() {
+        return None;
+    }
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let py = root.join(".venv/bin/python");
     if !py.exists() {

@@ -207,8 +207,8 @@ impl PhysicsConfig {
                 self.hot_pixel_fraction
             ));
         }
-        if self.max_substeps == 0 || self.max_substeps > 4096 || self.tile == 0 {
-            return bad("max_substeps must be 1..=4096 and tile at least 1".into());
+        if self.max_substeps == 0 || self.max_substeps > 4096 || !(1..=64).contains(&self.tile) {
+            return bad("max_substeps must be 1..=4096 and tile 1..=64".into());
         }
         Ok(())
     }
@@ -372,12 +372,8 @@ impl PhysicsSim {
                 self.stats.tiles_active += 1;
                 let mut settled = true;
                 for y in y0..y1 {
-                    for x in x0..x1 {
-                        let i = y * w + x;
-                        let v = frame.luma[i];
-                        let f = filter[(v >> 8) as usize];
-                        settled &= self.pixel(i, v, t0, frame.t, f, out);
-                    }
+                    let row = y * w + x0..y * w + x1;
+                    settled &= self.row(row, &frame.luma, t0, frame.t, &filter, out);
                 }
                 self.settled[ti] = settled;
             }
@@ -408,46 +404,78 @@ impl PhysicsSim {
             .collect()
     }
 
-    /// Advances pixel `i` from `t0` to `t1`; returns whether it is at rest.
-    ///
-    /// The filter is solved exactly for the input's linear ramp in `L`. When the filter's
-    /// path cannot reach a threshold (it stays between its start and the input's ends), the
-    /// pixel is updated in closed form; otherwise it is sub-stepped and its crossings timed.
-    #[allow(clippy::too_many_arguments)]
-    fn pixel(
+    /// Advances the pixels of `range` (one tile row) from `t0` to `t1`; returns whether all are
+    /// at rest. The common case, a pixel whose filtered response cannot reach a threshold, is
+    /// handled here on slices; the rest go to [`PhysicsSim::crossings`].
+    fn row(
         &mut self,
-        i: usize,
-        luma: u16,
+        range: std::ops::Range<usize>,
+        luma: &[u16],
         t0: i64,
         t1: i64,
-        filter: (f32, f32),
+        filter: &[(f32, f32)],
         out: &mut Vec<Event>,
     ) -> bool {
-        let l1 = self.log_lut[luma as usize];
-        let l0 = self.l_in[i];
-        let y0 = self.l_p[i];
-        let lref = self.l_ref[i];
-        let (on, off) = (self.thr_on[i], self.thr_off[i]);
-        let (tau, decay) = filter;
-        let dt = (t1 - t0) as f32;
-        let y1 = if tau > 0.0 {
-            let rt = (l1 - l0) / dt * tau;
-            l1 - rt + (y0 - l0 + rt) * decay
-        } else {
-            l1
-        };
-        let hi = y0.max(l0).max(l1).max(y1);
-        let lo = y0.min(l0).min(l1).min(y1);
-        if hi - lref < on && lref - lo < off {
-            self.l_in[i] = l1;
-            self.l_p[i] = y1;
-            return l0 == l1 && (y1 - l1).abs() < 1e-4;
+        let inv_dt = 1.0 / (t1 - t0) as f32;
+        let mut settled = true;
+        let mut slow: [usize; 64] = [0; 64];
+        let mut n_slow = 0;
+        let start = range.start;
+        let luma = &luma[range.clone()];
+        let l_in = &mut self.l_in[range.clone()];
+        let l_p = &mut self.l_p[range.clone()];
+        let l_ref = &self.l_ref[range.clone()];
+        let on = &self.thr_on[range.clone()];
+        let off = &self.thr_off[range];
+        for j in 0..luma.len() {
+            let v = luma[j];
+            let l1 = self.log_lut[v as usize];
+            let l0 = l_in[j];
+            let y0 = l_p[j];
+            let (tau, decay) = filter[(v >> 8) as usize];
+            let y1 = if tau > 0.0 {
+                let rt = (l1 - l0) * inv_dt * tau;
+                l1 - rt + (y0 - l0 + rt) * decay
+            } else {
+                l1
+            };
+            let hi = y0.max(l0).max(l1).max(y1);
+            let lo = y0.min(l0).min(l1).min(y1);
+            let lref = l_ref[j];
+            if hi - lref < on[j] && lref - lo < off[j] {
+                settled &= l0 == l1 && (y1 - l1).abs() < 1e-4;
+                l_in[j] = l1;
+                l_p[j] = y1;
+            } else {
+                // A tile row has at most 64 pixels (checked by `validate`).
+                slow[n_slow] = j;
+                n_slow += 1;
+            }
         }
-        self.crossings(i, l0 as f64, l1 as f64, t0, t1, tau as f64, out);
-        false
+        for &j in &slow[..n_slow] {
+            settled = false;
+            let v = luma[j];
+            self.slow_pixel(start + j, v, t0, t1, filter, out);
+        }
+        settled
     }
 
-    /// The slow path of [`PhysicsSim::pixel`]: sub-steps with timed crossings.
+    fn slow_pixel(
+        &mut self,
+        i: usize,
+        v: u16,
+        t0: i64,
+        t1: i64,
+        filter: &[(f32, f32)],
+        out: &mut Vec<Event>,
+    ) {
+        let l1 = self.log_lut[v as usize] as f64;
+        let l0 = self.l_in[i] as f64;
+        let tau = filter[(v >> 8) as usize].0 as f64;
+        self.crossings(i, l0, l1, t0, t1, tau, out);
+    }
+
+    /// The slow path of [`PhysicsSim::row`]: sub-steps with timed crossings.
     #[allow(clippy::too_many_arguments)]
     fn crossings(
         &mut self,
