@@ -211,3 +211,69 @@ fn transcode_and_info() {
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+#[test]
+fn convert_frames_to_events_in_every_format() {
+    let dir = temp_dir("convert");
+    // A 32 x 16 gray Y4M at 100 fps: a bright square moving right over a dark background.
+    let mut y4m = b"YUV4MPEG2 W32 H16 F100:1 Ip A1:1 Cmono\n".to_vec();
+    for f in 0..20usize {
+        y4m.extend_from_slice(b"FRAME\n");
+        for y in 0..16usize {
+            for x in 0..32usize {
+                let inside = (4..12).contains(&y) && x >= f && x < f + 8;
+                y4m.push(if inside { 220 } else { 30 });
+            }
+        }
+    }
+    std::fs::write(dir.join("in.y4m"), y4m).unwrap();
+    let input = dir.join("in.y4m");
+    let mut counts = Vec::new();
+    for out in ["a.aedat4", "b.raw", "c.csv"] {
+        let o = v2ce()
+            .arg("convert")
+            .arg(&input)
+            .arg("-o")
+            .arg(dir.join(out))
+            .args(["--preset", "ideal"])
+            .output()
+            .unwrap();
+        assert!(
+            o.status.success(),
+            "{out}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        let info = v2ce()
+            .arg("info")
+            .arg(dir.join(out))
+            .arg("--json")
+            .output()
+            .unwrap();
+        let v: serde_json::Value = serde_json::from_slice(&info.stdout).unwrap();
+        counts.push(v["events"].as_u64().unwrap());
+        if out != "c.csv" {
+            assert_eq!(v["size"], serde_json::json!([32, 16]), "{out}"); // CSV has no size
+        }
+    }
+    assert!(counts[0] > 100, "{counts:?}");
+    assert!(counts.iter().all(|&c| c == counts[0]), "{counts:?}");
+    // Bad input: a missing file, a bad preset, a folder without times.
+    std::fs::create_dir_all(dir.join("empty")).unwrap();
+    for (args, needle) in [
+        (vec!["convert", "missing.mp4", "-o", "x.csv"], "missing.mp4"),
+        (
+            vec!["convert", "in.y4m", "-o", "x.csv", "--preset", "best"],
+            "preset",
+        ),
+        (vec!["convert", "empty", "-o", "x.csv"], "fps"),
+    ] {
+        let o = v2ce().current_dir(&dir).args(&args).output().unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            !o.status.success() && err.contains(needle),
+            "{args:?}: {err}"
+        );
+        assert!(!err.contains("panicked"), "{args:?}: {err}");
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
