@@ -19,16 +19,21 @@ import numpy as np
 import eventcv
 
 
-def time_npy(argv, noise, repeat):
-    frames = np.load(argv[2])
-    fps = float(argv[3])
+def simulate_timed(frames, fps, noise, repeat):
+    """eventcv's events for `frames` and its best wall time over `repeat` runs."""
     kwargs = {} if noise else dict(sigma_thres=0.0, leak_rate_hz=0.0, shot_noise_rate_hz=0.0)
-    best = None
+    best, events = None, None
     for _ in range(repeat):
         start = time.perf_counter()
         events = eventcv.simulate(frames, fps=fps, **kwargs)
         took = time.perf_counter() - start
         best = took if best is None else min(best, took)
+    return events, best
+
+
+def time_npy(argv, noise, repeat):
+    frames = np.load(argv[2])
+    events, best = simulate_timed(frames, float(argv[3]), noise, repeat)
     print(f"FPS {len(frames) / best:.2f} EVENTS {len(events)}")
 
 
@@ -47,13 +52,7 @@ def main(argv):
             times.append(b + (e - b) // 2 if e >= b > 0 else f["t"])
     frames = np.stack(frames)
     fps = 1e6 * (len(times) - 1) / (times[-1] - times[0])
-    kwargs = {} if noise else dict(sigma_thres=0.0, leak_rate_hz=0.0, shot_noise_rate_hz=0.0)
-    best = None
-    for _ in range(repeat):
-        start = time.perf_counter()
-        events = eventcv.simulate(frames, fps=fps, **kwargs)
-        took = time.perf_counter() - start
-        best = took if best is None else min(best, took)
+    events, best = simulate_timed(frames, fps, noise, repeat)
     arr = np.asarray(eventcv.numpy(events))
     cols = list(events.columns)
     col = lambda *names: arr[:, [i for i, c in enumerate(cols) if c in names][0]]
