@@ -250,33 +250,8 @@ fn convert(args: ConvertArgs) -> Result<()> {
 }
 
 fn eval_stage1(args: Stage1Args) -> Result<()> {
-    let real_is_aedat = is_aedat4(&args.real);
-    let (real, frames) = if real_is_aedat && args.frames.is_none() && args.fps.is_none() {
-        let (rec, frames) = format::aedat4::read(&args.real)?;
-        (rec, Some(format::require_frames(&args.real, frames)?))
-    } else {
-        let frames = match &args.frames {
-            Some(p) => Some(format::read_frame_times(p)?),
-            None => None,
-        };
-        (format::read_events(&args.real)?, frames)
-    };
-    let intervals = match (frames, args.fps) {
-        (Some(f), _) => intervals_from_frames(&f)?,
-        (None, Some(fps)) => {
-            let ev = real.events.events();
-            let (Some(first), Some(last)) = (ev.first(), ev.last()) else {
-                return Err(Error::format(&args.real, "no events"));
-            };
-            fixed_intervals(first.t, last.t, fps)?
-        }
-        (None, None) => {
-            return Err(Error::invalid(
-                "frame intervals",
-                "--real has no APS frames: give --frames FILE or --fps F".to_string(),
-            ))
-        }
-    };
+    let (real, intervals) =
+        load_events_and_intervals(&args.real, args.frames.as_deref(), args.fps)?;
     let sim = format::read_events(&args.sim)?;
     if let Some(e) = sim
         .events
@@ -482,12 +457,21 @@ fn load_stage2_input(args: &Stage2Args) -> Result<(Recording, Vec<Interval>)> {
         let recording = v2ce::synthetic::sweeping_bar(128, 96, 2_000_000, 1);
         return Ok((recording, intervals));
     };
-    // An AEDAT4 event file that also supplies the frames is decoded once.
-    let own_frames = args.fps.is_none()
-        && is_aedat4(events_path)
-        && args.frames.as_deref().is_none_or(|f| f == events_path);
+    load_events_and_intervals(events_path, args.frames.as_deref(), args.fps)
+}
+
+/// Reads real events and their frame intervals: from `frames` (an .aedat4 with APS frames or
+/// IJRR images.txt), from a fixed `fps` starting at the first event, or, when neither is given,
+/// from the APS frames of an .aedat4 event file (decoded once with its events).
+fn load_events_and_intervals(
+    events_path: &Path,
+    frames: Option<&Path>,
+    fps: Option<f64>,
+) -> Result<(Recording, Vec<Interval>)> {
+    let own_frames =
+        fps.is_none() && is_aedat4(events_path) && frames.is_none_or(|f| f == events_path);
     let (recording, frames) = if own_frames {
-        if args.frames.is_none() {
+        if frames.is_none() {
             eprintln!(
                 "v2ce: no --frames or --fps: using the APS frames of {}",
                 events_path.display()
@@ -499,7 +483,7 @@ fn load_stage2_input(args: &Stage2Args) -> Result<(Recording, Vec<Interval>)> {
             Some(format::require_frames(events_path, frames)?),
         )
     } else {
-        let frames = match &args.frames {
+        let frames = match frames {
             Some(path) => Some(format::read_frame_times(path)?),
             None => None,
         };
@@ -507,7 +491,7 @@ fn load_stage2_input(args: &Stage2Args) -> Result<(Recording, Vec<Interval>)> {
     };
     let intervals = if let Some(frames) = frames {
         intervals_from_frames(&frames)?
-    } else if let Some(fps) = args.fps {
+    } else if let Some(fps) = fps {
         let ev = recording.events.events();
         match (ev.first(), ev.last()) {
             (Some(a), Some(b)) => fixed_intervals(a.t, b.t, fps)?,

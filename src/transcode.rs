@@ -24,26 +24,10 @@ pub struct TranscodeReport {
 /// The sensor size to write: `size`, else the input's, else one more than the largest column
 /// and row in the input (found by a first streaming pass).
 fn output_size(input: &Path, size: Option<(u16, u16)>) -> Result<(u16, u16)> {
-    if let Some(s) = size {
-        return Ok(s);
+    match size.or(format::open(input)?.size()) {
+        Some(s) => Ok(s),
+        None => Ok(summarize(input)?.extent),
     }
-    let mut decoder = format::open(input)?;
-    if let Some(s) = decoder.size() {
-        return Ok(s);
-    }
-    let (mut w, mut h) = (0u16, 0u16);
-    let mut buf = Vec::with_capacity(CHUNK);
-    loop {
-        buf.clear();
-        if decoder.read_events(&mut buf, CHUNK)? == 0 {
-            break;
-        }
-        for e in &buf {
-            w = w.max(e.x);
-            h = h.max(e.y);
-        }
-    }
-    Ok((w.saturating_add(1), h.saturating_add(1)))
 }
 
 /// Converts `input` to `output` in `format`, streaming. `size` overrides the sensor size.

@@ -3,7 +3,7 @@
 use std::io::{BufRead, Write};
 use std::path::Path;
 
-use super::{EventDecoder, EventEncoder, Recording};
+use super::{EventDecoder, EventEncoder};
 use crate::error::{Error, Result};
 use crate::event::Event;
 
@@ -140,14 +140,6 @@ impl<W: Write> EventEncoder for Encoder<W> {
     }
 }
 
-/// Reads a CSV event file.
-pub fn read(path: &Path) -> Result<Recording> {
-    let mut decoder = super::open(path)?;
-    let mut events = Vec::new();
-    while decoder.read_events(&mut events, 1 << 16)? > 0 {}
-    Ok(Recording::new(events, None))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -163,14 +155,14 @@ mod tests {
             Event::new(i64::MAX, 0, 65535, false),
         ];
         write(&p, &events).unwrap();
-        let back = read(&p).unwrap();
+        let back = super::super::read_events(&p).unwrap();
         assert_eq!(back.events.events(), &events[..]);
         assert_eq!((back.width, back.height), (65535, 65535));
         std::fs::write(&p, "t_us,x,y,on\n1,2,3,1\n4,5,x,0\n").unwrap();
-        let err = read(&p).unwrap_err().to_string();
+        let err = super::super::read_events(&p).unwrap_err().to_string();
         assert!(err.contains("line 3"), "{err}");
         std::fs::write(&p, vec![b'1'; 10_000]).unwrap();
-        let err = read(&p).unwrap_err().to_string();
+        let err = super::super::read_events(&p).unwrap_err().to_string();
         assert!(err.contains("longer than"), "{err}");
         std::fs::remove_dir_all(&dir).unwrap();
     }

@@ -47,13 +47,9 @@ fn read_lines(path: &Path) -> Result<Vec<String>> {
 }
 
 impl ImageFolder {
-    /// Lists the folder's frames and reads the first to learn the size.
-    pub fn open(folder: &Path, fps: Option<f64>) -> Result<Self> {
-        Self::open_with(folder, fps, false)
-    }
-
-    /// As [`ImageFolder::open`]; `linear` skips the sRGB transfer function.
-    pub fn open_with(folder: &Path, fps: Option<f64>, linear: bool) -> Result<Self> {
+    /// Lists the folder's frames and reads the first to learn the size; `linear` skips the
+    /// sRGB transfer function.
+    pub fn open(folder: &Path, fps: Option<f64>, linear: bool) -> Result<Self> {
         let ijrr = folder.join("images.txt");
         let times = folder.join("times.txt");
         let frames: Vec<(i64, PathBuf)> = if ijrr.is_file() {

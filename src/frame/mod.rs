@@ -75,7 +75,7 @@ pub struct SourceOptions {
 /// or any other file as a video through the `ffmpeg` command-line tool.
 pub fn open(path: &Path, options: &SourceOptions) -> Result<Box<dyn FrameSource>> {
     if path.is_dir() {
-        return Ok(Box::new(images::ImageFolder::open_with(
+        return Ok(Box::new(images::ImageFolder::open(
             path,
             options.fps,
             options.linear,

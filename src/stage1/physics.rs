@@ -219,9 +219,9 @@ impl PhysicsConfig {
 pub struct PhysicsStats {
     /// Frames stepped.
     pub frames: u64,
-    /// Tiles processed / skipped as static.
+    /// Tiles processed.
     pub tiles_active: u64,
-    /// Tiles skipped.
+    /// Tiles skipped as static (identical to the previous frame and settled).
     pub tiles_skipped: u64,
     /// Signal events (threshold crossings).
     pub signal_events: u64,
