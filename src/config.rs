@@ -8,6 +8,8 @@ use std::path::Path;
 use serde::Deserialize;
 
 use crate::error::{Error, Result};
+use crate::pipeline::queue::QueuePolicy;
+use crate::sink::udp::UdpFormat;
 use crate::stage1::Stage1Config;
 use crate::stage2::SamplerKind;
 use crate::voxel::DEFAULT_BINS;
@@ -20,6 +22,134 @@ pub struct Config {
     pub stage1: Stage1Config,
     /// Stage 2 (voxels to events).
     pub stage2: Stage2Config,
+    /// The daemon (`v2ce run`): source, outputs, queues, limits.
+    pub run: RunConfig,
+    /// What to ask a camera for.
+    pub camera: crate::capture::CameraConfig,
+}
+
+/// The `[run]` table: what `v2ce run` reads, where it sends, and how it copes.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RunConfig {
+    /// A camera (`/dev/video0`, or an index), a file (video, image folder, `.y4m`, `.aedat4`
+    /// with APS frames), or `""`: the first camera, else the bundled fixture video.
+    pub source: String,
+    /// Resample frames to `WIDTHxHEIGHT` (`""`: the source's size).
+    pub size: String,
+    /// A file source is replayed at this multiple of real time, paced by its own timestamps.
+    pub replay_speed: f64,
+    /// Replay a file source again and again (times keep increasing).
+    #[serde(rename = "loop")]
+    pub loop_source: bool,
+    /// Frame rate of an image folder without a times file (0: required from the folder).
+    pub fps: f64,
+    /// Send events as UDP datagrams to this `HOST:PORT` (`""`: no UDP).
+    pub udp: String,
+    /// The datagram format: spif, spif_timestamped, t64_x16_y16_on8, t32_x16_y15_on1.
+    pub udp_format: UdpFormat,
+    /// Most datagrams per second (0: as fast as the socket takes them).
+    pub udp_rate: u32,
+    /// Serve DV's AEDAT 4.0 network stream on this `HOST:PORT` (`""`: no TCP).
+    pub tcp: String,
+    /// Also write events to this file; the extension picks the format (`""`: none).
+    pub out: String,
+    /// What a full queue does: "drop-oldest" (stay live) or "block" (lose nothing).
+    pub queue_policy: QueuePolicy,
+    /// Capacity of each queue between stages, in frames.
+    pub queue_capacity: usize,
+    /// Stop after this many seconds (0: run until stopped).
+    pub duration: f64,
+    /// Stop after this many frames (0: no limit).
+    pub max_frames: u64,
+    /// Seconds between stats lines on the log and in the systemd status.
+    pub stats_interval: f64,
+    /// First wait before reopening a camera that failed, milliseconds; doubled per failure.
+    pub reconnect_min_ms: u64,
+    /// Longest wait between reopening attempts, milliseconds.
+    pub reconnect_max_ms: u64,
+}
+
+impl Default for RunConfig {
+    fn default() -> Self {
+        RunConfig {
+            source: String::new(),
+            size: String::new(),
+            replay_speed: 1.0,
+            loop_source: false,
+            fps: 0.0,
+            udp: "127.0.0.1:3333".into(),
+            udp_format: UdpFormat::Spif,
+            udp_rate: 0,
+            tcp: String::new(),
+            out: String::new(),
+            queue_policy: QueuePolicy::DropOldest,
+            queue_capacity: 4,
+            duration: 0.0,
+            max_frames: 0,
+            stats_interval: 10.0,
+            reconnect_min_ms: 500,
+            reconnect_max_ms: 10_000,
+        }
+    }
+}
+
+impl RunConfig {
+    /// Checks values that TOML types cannot.
+    pub fn validate(&self) -> Result<()> {
+        let bad = |what: &'static str, message: String| Err(Error::invalid(what, message));
+        if !(self.replay_speed.is_finite() && self.replay_speed > 0.0) {
+            return bad(
+                "run.replay_speed",
+                format!("{} (must be > 0)", self.replay_speed),
+            );
+        }
+        if !(self.fps.is_finite() && self.fps >= 0.0) {
+            return bad("run.fps", format!("{} (must be >= 0)", self.fps));
+        }
+        if !(self.duration.is_finite() && self.duration >= 0.0) {
+            return bad("run.duration", format!("{} (must be >= 0)", self.duration));
+        }
+        if !(self.stats_interval.is_finite() && self.stats_interval > 0.0) {
+            return bad(
+                "run.stats_interval",
+                format!("{} (must be > 0)", self.stats_interval),
+            );
+        }
+        if !(1..=1024).contains(&self.queue_capacity) {
+            return bad(
+                "run.queue_capacity",
+                format!("{} (must be 1..=1024)", self.queue_capacity),
+            );
+        }
+        if self.reconnect_min_ms == 0 || self.reconnect_max_ms < self.reconnect_min_ms {
+            return bad(
+                "run.reconnect_min_ms",
+                "must be > 0 and at most reconnect_max_ms".into(),
+            );
+        }
+        if !self.size.is_empty() {
+            parse_size(&self.size)?;
+        }
+        if self.udp.is_empty() && self.tcp.is_empty() && self.out.is_empty() {
+            return bad("run", "no output: set udp, tcp or out".into());
+        }
+        Ok(())
+    }
+}
+
+/// Parses `WIDTHxHEIGHT` (each 1..=65535).
+pub fn parse_size(text: &str) -> Result<(u16, u16)> {
+    let parsed = text
+        .split_once(['x', 'X'])
+        .and_then(|(w, h)| Some((w.trim().parse::<u16>().ok()?, h.trim().parse::<u16>().ok()?)));
+    match parsed {
+        Some((w, h)) if w > 0 && h > 0 => Ok((w, h)),
+        _ => Err(Error::invalid(
+            "size",
+            format!("{text:?} (expected WIDTHxHEIGHT, e.g. 346x260)"),
+        )),
+    }
 }
 
 /// Stage 2 settings.
@@ -66,6 +196,10 @@ impl Config {
         config
             .stage1
             .physics_config()
+            .validate()
+            .map_err(|e| Error::format(origin, e.to_string()))?;
+        config
+            .run
             .validate()
             .map_err(|e| Error::format(origin, e.to_string()))?;
         Ok(config)

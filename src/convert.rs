@@ -1,17 +1,18 @@
-//! Frames to events: a frame source through Stage 1 (and, in voxel mode, Stage 2) into sinks.
+//! Frames to events, offline: a frame source through the [`pipeline`](crate::pipeline) with
+//! every queue blocking (nothing is ever dropped), as fast as the stages go.
 //!
-//! Memory stays at one frame and one interval's events, whatever the video's length.
+//! Memory stays at a few frames and their events, whatever the video's length.
 
-use std::time::Instant;
+use std::sync::atomic::AtomicBool;
+use std::time::Duration;
 
 use crate::config::Config;
-use crate::error::Result;
-use crate::event::Event;
+use crate::error::{Error, Result};
 use crate::frame::FrameSource;
-use crate::interval::Interval;
+use crate::pipeline::queue::QueuePolicy;
+use crate::pipeline::{self, Options, Source};
 use crate::sink::Sink;
-use crate::stage1::{PhysicsSim, PhysicsStats, Stage1Output};
-use crate::voxel::{VoxelGrid, Voxelizer};
+use crate::stage1::PhysicsStats;
 
 /// What a conversion did.
 #[derive(Debug, Clone, Copy, Default, serde::Serialize)]
@@ -20,7 +21,7 @@ pub struct ConvertReport {
     pub frames: u64,
     /// Events handed to the sinks.
     pub events: u64,
-    /// Time of the first and last frame, us.
+    /// Time of the first frame, us.
     pub first_t: Option<i64>,
     /// Time of the last frame.
     pub last_t: Option<i64>,
@@ -30,57 +31,53 @@ pub struct ConvertReport {
     pub physics: PhysicsStats,
 }
 
-/// Runs `source` through the configured pipeline into every sink, calling `progress` after each
-/// frame with the report so far. The sinks are finished at the end.
+/// Runs `source` through the configured stages into every sink, calling `progress` a few times
+/// a second with the report so far. The sinks are finished at the end. `stop` (e.g. set on
+/// SIGINT) ends the conversion early, with everything read so far written; `max_frames`
+/// limits the frames read.
 pub fn convert(
-    source: &mut dyn FrameSource,
+    source: Box<dyn FrameSource>,
     config: &Config,
-    sinks: &mut [Box<dyn Sink>],
+    sinks: Vec<Box<dyn Sink>>,
+    max_frames: Option<u64>,
+    stop: &AtomicBool,
     mut progress: impl FnMut(&ConvertReport),
 ) -> Result<ConvertReport> {
-    let started = Instant::now();
-    let (w, h) = source.size();
-    let mut sim = PhysicsSim::new(config.stage1.physics_config(), w, h, config.stage1.seed)?;
-    let voxel_mode = config.stage1.output == Stage1Output::Voxels;
-    let bins = config.stage2.bins;
-    let mut voxelizer = Voxelizer::new(w, h, bins)?;
-    let mut grid = VoxelGrid::new(w, h, bins)?;
-    let sampler = config.stage2.sampler.build(config.stage2.seed);
-    let mut report = ConvertReport::default();
-    let mut events: Vec<Event> = Vec::new();
-    let mut sampled: Vec<Event> = Vec::new();
-    while let Some(frame) = source.next_frame()? {
-        events.clear();
-        let previous = report.last_t;
-        sim.step(&frame, &mut events)?;
-        report.frames += 1;
-        report.first_t.get_or_insert(frame.t);
-        report.last_t = Some(frame.t);
-        let batch = match (voxel_mode, previous) {
-            (true, Some(t0)) => {
-                // Events of (t0, t1] voxelized on [t0, t1): one at t1 lands on the last node.
-                let interval = Interval::new(t0, frame.t)?;
-                voxelizer.voxelize_into(&events, interval, &mut grid)?;
-                sampled.clear();
-                sampler.sample(&grid, interval, &mut sampled);
-                &sampled
-            }
-            _ => &events,
-        };
-        if !batch.is_empty() {
-            for sink in sinks.iter_mut() {
-                sink.send(batch)?;
-            }
-        }
-        report.events += batch.len() as u64;
-        report.physics = sim.stats();
-        report.seconds = started.elapsed().as_secs_f64();
-        progress(&report);
+    let options = Options {
+        policy: QueuePolicy::Block,
+        capacity: 4,
+        max_frames,
+        duration: None,
+        tick: Duration::from_millis(250),
+    };
+    let mut on_tick = |s: &pipeline::stats::Snapshot| {
+        progress(&ConvertReport {
+            frames: s.frames_in,
+            events: s.events_out,
+            seconds: s.uptime_s,
+            ..ConvertReport::default()
+        })
+    };
+    let report = pipeline::run(
+        Source::file(source),
+        config,
+        sinks,
+        &options,
+        stop,
+        &mut on_tick,
+    )?;
+    if !report.end.is_clean() {
+        return Err(Error::Run(report.end.describe()));
     }
-    for sink in sinks.iter_mut() {
-        sink.finish()?;
+    if let Some(failed) = report.stats.sinks.iter().find_map(|s| s.failed.clone()) {
+        return Err(Error::Run(failed));
     }
-    report.seconds = started.elapsed().as_secs_f64();
-    report.physics = sim.stats();
-    Ok(report)
+    Ok(ConvertReport {
+        frames: report.stats.frames_in,
+        events: report.stats.events_out,
+        first_t: report.first_t,
+        last_t: report.last_t,
+        seconds: report.stats.uptime_s,
+        physics: report.physics,
+    })
 }

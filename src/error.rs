@@ -21,6 +21,9 @@ pub enum Error {
         /// What is wrong, with a line or byte position where known.
         message: String,
     },
+    /// A run (conversion, daemon) that ended by a failure; the message says which part failed.
+    #[error("{0}")]
+    Run(String),
     /// An argument or configuration value that cannot be used.
     #[error("invalid {what}: {message}")]
     Invalid {

@@ -6,8 +6,10 @@
 
 #![warn(missing_docs)]
 
+pub mod capture;
 pub mod config;
 pub mod convert;
+pub mod daemon;
 pub mod error;
 pub mod eval;
 pub mod event;
@@ -15,6 +17,7 @@ pub mod format;
 pub mod frame;
 pub mod interval;
 pub mod metrics;
+pub mod pipeline;
 pub mod sink;
 pub mod stage1;
 pub mod stage2;

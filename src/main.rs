@@ -6,7 +6,7 @@ use std::process::ExitCode;
 
 use clap::{Args, Parser, Subcommand};
 
-use v2ce::config::Config;
+use v2ce::config::{parse_size, Config};
 use v2ce::format::{self, csv, Recording};
 use v2ce::interval::{fixed_intervals, intervals_from_frames, Interval};
 use v2ce::stage2::SamplerKind;
@@ -34,6 +34,76 @@ enum Command {
     Transcode(TranscodeArgs),
     /// Print an event file's sensor size, event count, time span, rate and ON ratio.
     Info(InfoArgs),
+    /// The live daemon: capture (a camera, a replayed file, or the bundled fixture video),
+    /// simulate, and stream events over UDP / TCP / to a file until stopped.
+    Run(RunArgs),
+    /// List the cameras with their formats, sizes and frame rates.
+    Devices,
+    /// Measure the daemon: capture-to-send latency, CPU and memory at 346x260 and 640x480 on
+    /// the replayed fixture video.
+    Bench(BenchArgs),
+}
+
+#[derive(Args)]
+struct RunArgs {
+    /// TOML configuration file (the flags below override it); see config/v2ce.toml.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// A camera (/dev/video0 or an index), a file or image folder, or `fixture`.
+    #[arg(long)]
+    source: Option<String>,
+    /// Send UDP datagrams to HOST:PORT (an empty string turns UDP off).
+    #[arg(long)]
+    udp: Option<String>,
+    /// Datagram format: spif, spif_timestamped, t64_x16_y16_on8, t32_x16_y15_on1.
+    #[arg(long)]
+    udp_format: Option<String>,
+    /// Serve DV's AEDAT 4.0 network stream on HOST:PORT.
+    #[arg(long)]
+    tcp: Option<String>,
+    /// Also write the events to this file (.aedat4, .raw, .csv).
+    #[arg(long)]
+    out: Option<String>,
+    /// Seed of mismatch, noise and sampling.
+    #[arg(long)]
+    seed: Option<u64>,
+    /// A full queue: block (lose nothing) or drop-oldest (stay live).
+    #[arg(long)]
+    queue_policy: Option<String>,
+    /// Stop after this many seconds.
+    #[arg(long)]
+    duration: Option<f64>,
+    /// Stop after this many frames.
+    #[arg(long)]
+    max_frames: Option<u64>,
+    /// Resample frames to WIDTHxHEIGHT.
+    #[arg(long, value_name = "WxH")]
+    size: Option<String>,
+    /// Replay a file at this multiple of real time.
+    #[arg(long)]
+    replay_speed: Option<f64>,
+    /// Replay a file again and again.
+    #[arg(long = "loop")]
+    loop_source: bool,
+    /// Seconds between stats lines.
+    #[arg(long)]
+    stats_interval: Option<f64>,
+    /// Print the final report as one JSON object on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args)]
+struct BenchArgs {
+    /// Seconds per configuration.
+    #[arg(long, default_value_t = 30.0)]
+    seconds: f64,
+    /// Sizes to measure.
+    #[arg(long, value_delimiter = ',', default_value = "346x260,640x480")]
+    sizes: Vec<String>,
+    /// Print the results as JSON lines.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Args)]
@@ -112,6 +182,12 @@ struct ConvertArgs {
     /// Packet compression of an .aedat4 output: lz4, zstd, zstd-high or none.
     #[arg(long, default_value = "lz4")]
     compression: String,
+    /// Resample frames to WIDTHxHEIGHT.
+    #[arg(long, value_name = "WxH")]
+    size: Option<String>,
+    /// Stop after this many frames.
+    #[arg(long)]
+    max_frames: Option<u64>,
 }
 
 #[derive(Args)]
@@ -172,6 +248,9 @@ fn main() -> ExitCode {
         Command::Convert(args) => convert(args),
         Command::Transcode(args) => transcode(args),
         Command::Info(args) => info(args),
+        Command::Run(args) => run(args),
+        Command::Devices => devices(),
+        Command::Bench(args) => bench(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -180,6 +259,200 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+/// Logs to stderr; under systemd (JOURNAL_STREAM set) without timestamps or colours, which the
+/// journal adds or does not want. `V2CE_LOG` sets the level (error, warn, info, debug, trace).
+fn init_logging() {
+    use std::io::IsTerminal;
+    let level = std::env::var("V2CE_LOG")
+        .ok()
+        .and_then(|l| l.parse::<tracing::Level>().ok())
+        .unwrap_or(tracing::Level::INFO);
+    let builder = tracing_subscriber::fmt()
+        .with_writer(std::io::stderr)
+        .with_max_level(level)
+        .with_target(false);
+    if std::env::var_os("JOURNAL_STREAM").is_some() {
+        builder.without_time().with_ansi(false).init();
+    } else {
+        builder.with_ansi(std::io::stderr().is_terminal()).init();
+    }
+}
+
+fn run_config(args: &RunArgs) -> Result<Config> {
+    let mut config = match &args.config {
+        Some(path) => Config::load(path)?,
+        None => Config::default(),
+    };
+    let run = &mut config.run;
+    if let Some(v) = &args.source {
+        run.source = v.clone();
+    }
+    if let Some(v) = &args.udp {
+        run.udp = v.clone();
+    }
+    if let Some(v) = &args.udp_format {
+        run.udp_format = v2ce::sink::udp::UdpFormat::from_name(v)?;
+    }
+    if let Some(v) = &args.tcp {
+        run.tcp = v.clone();
+    }
+    if let Some(v) = &args.out {
+        run.out = v.clone();
+    }
+    if let Some(v) = &args.queue_policy {
+        run.queue_policy = v2ce::pipeline::queue::QueuePolicy::from_name(v)?;
+    }
+    if let Some(v) = args.duration {
+        run.duration = v;
+    }
+    if let Some(v) = args.max_frames {
+        run.max_frames = v;
+    }
+    if let Some(v) = &args.size {
+        run.size = v.clone();
+    }
+    if let Some(v) = args.replay_speed {
+        run.replay_speed = v;
+    }
+    if args.loop_source {
+        run.loop_source = true;
+    }
+    if let Some(v) = args.stats_interval {
+        run.stats_interval = v;
+    }
+    if let Some(s) = args.seed {
+        config.stage1.seed = s;
+        config.stage2.seed = s;
+    }
+    Ok(config)
+}
+
+fn run(args: RunArgs) -> Result<()> {
+    init_logging();
+    let config = run_config(&args)?;
+    let stop = v2ce::daemon::stop_on_signals()?;
+    let report = v2ce::daemon::run(&config, &stop)?;
+    if args.json {
+        let text =
+            serde_json::to_string(&report).map_err(|e| Error::invalid("report", e.to_string()))?;
+        println!("{text}");
+    }
+    if report.end.is_clean() {
+        Ok(())
+    } else {
+        Err(Error::Run(report.end.describe()))
+    }
+}
+
+fn devices() -> Result<()> {
+    let cameras = v2ce::capture::list_cameras()?;
+    if cameras.is_empty() {
+        println!("no cameras found");
+    }
+    for camera in cameras {
+        println!("{camera}");
+    }
+    Ok(())
+}
+
+fn bench(args: BenchArgs) -> Result<()> {
+    use std::sync::atomic::AtomicBool;
+    init_logging();
+    let stop = v2ce::daemon::stop_on_signals()?;
+    for size in &args.sizes {
+        parse_size(size)?;
+        // A receiver on loopback that drains the datagrams, as a consumer would.
+        let socket = std::net::UdpSocket::bind("127.0.0.1:0").map_err(|e| Error::io("udp", e))?;
+        let port = socket.local_addr().map_err(|e| Error::io("udp", e))?.port();
+        socket
+            .set_read_timeout(Some(std::time::Duration::from_millis(200)))
+            .map_err(|e| Error::io("udp", e))?;
+        let done = std::sync::Arc::new(AtomicBool::new(false));
+        let receiver = std::thread::spawn({
+            let done = done.clone();
+            move || {
+                let (mut buf, mut n) = (vec![0u8; 65536], 0u64);
+                while !done.load(std::sync::atomic::Ordering::Relaxed) {
+                    if socket.recv(&mut buf).is_ok() {
+                        n += 1;
+                    }
+                }
+                n
+            }
+        });
+        let mut config = Config::default();
+        config.run.source = v2ce::frame::fixture::NAME.into();
+        config.run.size = size.clone();
+        config.run.loop_source = true;
+        config.run.duration = args.seconds;
+        config.run.udp = format!("127.0.0.1:{port}");
+        config.run.stats_interval = 10.0;
+        let (source, what) = v2ce::daemon::open_source(&config)?;
+        let (w, h) = source.first.size();
+        let sinks = v2ce::daemon::open_sinks(&config.run, w, h)?;
+        tracing::info!("bench {size}: {what}, {} s", args.seconds);
+        let mut rss = Vec::new();
+        let mut on_tick = |s: &v2ce::pipeline::stats::Snapshot| {
+            tracing::info!("{}", s.line());
+            rss.push(s.rss_kib);
+        };
+        let options = v2ce::daemon::options(&config.run);
+        let report = v2ce::pipeline::run(source, &config, sinks, &options, &stop, &mut on_tick)?;
+        done.store(true, std::sync::atomic::Ordering::Relaxed);
+        let datagrams = receiver.join().unwrap_or(0);
+        let s = &report.stats;
+        let l = &s.latency_total;
+        let fps = s.frames_in as f64 / s.uptime_s.max(1e-9);
+        // Physics tier: one frame interval of waiting for the frame that closes the interval,
+        // plus Stage 1's window (one interval: it needs the previous frame).
+        let budget_ms = 2.0 * 1000.0 / 30.0;
+        let rss_growth = match (rss.first(), rss.last()) {
+            (Some(a), Some(b)) => *b as i64 - *a as i64,
+            _ => 0,
+        };
+        let result = serde_json::json!({
+            "size": size,
+            "seconds": s.uptime_s,
+            "frames": s.frames_in,
+            "frames_per_s": fps,
+            "frames_dropped": s.frames_dropped,
+            "events_per_s": s.events_out as f64 / s.uptime_s.max(1e-9),
+            "datagrams_received": datagrams,
+            "latency_ms": {"p50": l.p50_ms, "p90": l.p90_ms, "p99": l.p99_ms, "max": l.max_ms},
+            "budget_ms": budget_ms,
+            "cpu_percent": 100.0 * s.cpu_s / s.uptime_s.max(1e-9),
+            "rss_first_tick_kib": rss.first(),
+            "rss_end_kib": s.rss_kib,
+            "rss_growth_kib": rss_growth,
+            "max_rss_kib": s.max_rss_kib,
+        });
+        if args.json {
+            println!("{result}");
+        } else {
+            println!(
+                "{size}: {:.1} frames/s ({} dropped), {:.0} events/s; capture-to-send latency p50                  {:.2} ms, p90 {:.2} ms, p99 {:.2} ms, max {:.2} ms (budget {:.1} ms: {}); cpu                  {:.1}% of a core; rss {} KiB at the first tick, {} KiB at the end ({:+} KiB)",
+                fps,
+                s.frames_dropped,
+                s.events_out as f64 / s.uptime_s.max(1e-9),
+                l.p50_ms,
+                l.p90_ms,
+                l.p99_ms,
+                l.max_ms,
+                budget_ms,
+                if l.p99_ms <= budget_ms { "met" } else { "missed" },
+                100.0 * s.cpu_s / s.uptime_s.max(1e-9),
+                rss.first().copied().unwrap_or(0),
+                s.rss_kib,
+                rss_growth
+            );
+        }
+        if report.end == v2ce::pipeline::End::Stopped {
+            break;
+        }
+    }
+    Ok(())
 }
 
 fn convert(args: ConvertArgs) -> Result<()> {
@@ -208,13 +481,23 @@ fn convert(args: ConvertArgs) -> Result<()> {
         fps: args.fps,
         linear: args.linear,
     };
-    let mut source = v2ce::frame::open(&args.input, &options)?;
+    let mut source = if args.input.as_os_str() == v2ce::frame::fixture::NAME {
+        v2ce::frame::fixture::open()?
+    } else {
+        v2ce::frame::open(&args.input, &options)?
+    };
+    if let Some(size) = &args.size {
+        source = Box::new(v2ce::frame::resize::Resized::new(
+            source,
+            parse_size(size)?,
+        )?);
+    }
     let (w, h) = source.size();
     let evt = args.evt.parse::<u8>().ok();
     let compression = format::Compression::from_name(&args.compression)?;
     let fmt = format::Format::for_output(&args.output, evt, compression)?;
     let sink = v2ce::sink::file::FileSink::create(&args.output, fmt, w, h)?;
-    let mut sinks: Vec<Box<dyn v2ce::sink::Sink>> = vec![Box::new(sink)];
+    let sinks: Vec<Box<dyn v2ce::sink::Sink>> = vec![Box::new(sink)];
     eprintln!(
         "v2ce: {} -> {} (physics, preset {}, {} x {})",
         source.describe(),
@@ -224,8 +507,9 @@ fn convert(args: ConvertArgs) -> Result<()> {
         h
     );
     let tty = std::io::stderr().is_terminal();
-    let report = v2ce::convert::convert(source.as_mut(), &config, &mut sinks, |r| {
-        if tty && r.frames % 10 == 0 {
+    let stop = v2ce::daemon::stop_on_signals()?;
+    let report = v2ce::convert::convert(source, &config, sinks, args.max_frames, &stop, |r| {
+        if tty {
             eprint!(
                 "\r  {} frames, {} events, {:.1} frames/s   ",
                 r.frames,
@@ -318,20 +602,6 @@ fn eval_stage1(args: Stage1Args) -> Result<()> {
         )
     };
     writeln!(out, "{text}").map_err(|e| Error::io("stdout", e))
-}
-
-fn parse_size(text: &str) -> Result<(u16, u16)> {
-    let bad = || {
-        Error::invalid(
-            "size",
-            format!("'{text}' (expected WIDTHxHEIGHT, e.g. 346x260)"),
-        )
-    };
-    let (w, h) = text.split_once(['x', 'X']).ok_or_else(bad)?;
-    match (w.trim().parse::<u16>(), h.trim().parse::<u16>()) {
-        (Ok(w), Ok(h)) if w > 0 && h > 0 => Ok((w, h)),
-        _ => Err(bad()),
-    }
 }
 
 fn transcode(args: TranscodeArgs) -> Result<()> {

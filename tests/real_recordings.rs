@@ -196,15 +196,16 @@ fn physics_tier_on_davis346_beats_the_noiseless_sensor() {
     let score = |preset: Preset| {
         let mut config = Config::default();
         config.stage1.preset = preset;
-        let mut source = v2ce::frame::open(&path, &Default::default()).unwrap();
+        let source = v2ce::frame::open(&path, &Default::default()).unwrap();
         let out = std::env::temp_dir().join(format!(
             "v2ce-p-{}-{}.csv",
             preset.name(),
             std::process::id()
         ));
         let sink = v2ce::sink::file::FileSink::create(&out, format::Format::Csv, 346, 260).unwrap();
-        let mut sinks: Vec<Box<dyn v2ce::sink::Sink>> = vec![Box::new(sink)];
-        v2ce::convert::convert(source.as_mut(), &config, &mut sinks, |_| {}).unwrap();
+        let sinks: Vec<Box<dyn v2ce::sink::Sink>> = vec![Box::new(sink)];
+        let stop = std::sync::atomic::AtomicBool::new(false);
+        v2ce::convert::convert(source, &config, sinks, None, &stop, |_| {}).unwrap();
         let sim = format::read_events(&out).unwrap();
         std::fs::remove_file(&out).unwrap();
         v2ce::metrics::stage1::score(

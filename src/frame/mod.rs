@@ -14,7 +14,9 @@
 pub mod aps;
 pub mod color;
 pub mod ffmpeg;
+pub mod fixture;
 pub mod images;
+pub mod resize;
 pub mod synthetic;
 pub mod y4m;
 
@@ -71,7 +73,7 @@ pub struct SourceOptions {
     pub linear: bool,
 }
 
-/// Opens `path` as a frame source: a folder of images, a `.y4m`, an `.aedat4` with APS frames,
+/// Opens `path` as a frame source: a folder of images, a `.y4m` (or `.y4m.zst`), an `.aedat4` with APS frames,
 /// or any other file as a video through the `ffmpeg` command-line tool.
 pub fn open(path: &Path, options: &SourceOptions) -> Result<Box<dyn FrameSource>> {
     if path.is_dir() {
@@ -87,12 +89,16 @@ pub fn open(path: &Path, options: &SourceOptions) -> Result<Box<dyn FrameSource>
             std::io::Error::new(std::io::ErrorKind::NotFound, "no such file or folder"),
         ));
     }
-    let ext = path
-        .extension()
+    let name = path
+        .file_name()
         .and_then(|e| e.to_str())
         .unwrap_or("")
         .to_ascii_lowercase();
-    match ext.as_str() {
+    let ext = name.rsplit('.').next().unwrap_or("");
+    if name.ends_with(".y4m.zst") {
+        return Ok(Box::new(y4m::Y4mSource::open(path)?));
+    }
+    match ext {
         "y4m" => Ok(Box::new(y4m::Y4mSource::open(path)?)),
         "aedat4" => Ok(Box::new(aps::ApsSource::open(path)?)),
         _ => Ok(Box::new(ffmpeg::FfmpegSource::open(path)?)),

@@ -1,9 +1,10 @@
 //! YUV4MPEG2 (`.y4m`) files as a frame source, through the `y4m` crate.
 //!
 //! Frame `i` is at `round(i * 1e6 * den / num)` us from the header's frame rate (the format
-//! carries no per-frame timestamps). 8-bit 4:2:0, 4:2:2, 4:4:4 and mono are accepted.
+//! carries no per-frame timestamps). 8-bit 4:2:0, 4:2:2, 4:4:4 and mono are accepted; a
+//! `.y4m.zst` file is decompressed on the fly.
 
-use std::io::BufReader;
+use std::io::{BufReader, Read};
 use std::path::{Path, PathBuf};
 
 use super::color::{rgb_to_luma, ycbcr_to_rgb};
@@ -13,7 +14,7 @@ use crate::error::{Error, Result};
 /// Reads a `.y4m` file.
 pub struct Y4mSource {
     path: PathBuf,
-    decoder: y4m::Decoder<BufReader<std::fs::File>>,
+    decoder: y4m::Decoder<Box<dyn Read + Send>>,
     size: (u16, u16),
     rate: (usize, usize),
     full_range: bool,
@@ -21,10 +22,23 @@ pub struct Y4mSource {
 }
 
 impl Y4mSource {
-    /// Opens `path` and reads its header.
+    /// Opens `path` (`.y4m`, or `.y4m.zst` compressed with Zstandard) and reads its header.
     pub fn open(path: &Path) -> Result<Self> {
         let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
-        let decoder = y4m::Decoder::new(BufReader::new(file))
+        let zst = path
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("zst"));
+        let reader: Box<dyn Read + Send> = if zst {
+            Box::new(zstd::stream::read::Decoder::new(file).map_err(|e| Error::io(path, e))?)
+        } else {
+            Box::new(BufReader::new(file))
+        };
+        Self::from_reader(reader, path)
+    }
+
+    /// Reads a Y4M stream from `reader`; `path` names it in messages.
+    pub fn from_reader(reader: Box<dyn Read + Send>, path: &Path) -> Result<Self> {
+        let decoder = y4m::Decoder::new(reader)
             .map_err(|e| Error::format(path, format!("not a readable Y4M file: {e:?}")))?;
         let (w, h) = (decoder.get_width(), decoder.get_height());
         let size = match (u16::try_from(w), u16::try_from(h)) {

@@ -231,6 +231,18 @@ pub struct PhysicsStats {
     pub noise_events: u64,
 }
 
+impl PhysicsStats {
+    /// Adds another run's counters (a simulation restarted mid-stream).
+    pub fn add(&mut self, o: PhysicsStats) {
+        self.frames += o.frames;
+        self.tiles_active += o.tiles_active;
+        self.tiles_skipped += o.tiles_skipped;
+        self.signal_events += o.signal_events;
+        self.refractory_drops += o.refractory_drops;
+        self.noise_events += o.noise_events;
+    }
+}
+
 /// The simulator state for one sensor.
 pub struct PhysicsSim {
     cfg: PhysicsConfig,

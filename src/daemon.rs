@@ -1,0 +1,296 @@
+//! `v2ce run`, the live daemon, wired from the configuration: the source (a camera, a file
+//! replayed in real time, or the bundled fixture), the outputs (UDP, TCP, file), signals,
+//! systemd readiness and status, and periodic stats on the log.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+use std::time::Duration;
+
+use crate::capture;
+use crate::config::{parse_size, Config, RunConfig};
+use crate::error::{Error, Result};
+use crate::format::{Compression, Format};
+use crate::frame::resize::Resized;
+use crate::frame::{self, FrameSource, SourceOptions};
+use crate::pipeline::{self, Options, Report, Source};
+use crate::sink::file::FileSink;
+use crate::sink::tcp::{TcpConfig, TcpSink};
+use crate::sink::udp::{UdpConfig, UdpSink};
+use crate::sink::Sink;
+
+/// Raises the returned flag on the first SIGINT or SIGTERM (the pipeline then flushes and
+/// stops); a second one exits at once with status 130.
+pub fn stop_on_signals() -> Result<Arc<AtomicBool>> {
+    use signal_hook::consts::{SIGINT, SIGTERM};
+    let flag = Arc::new(AtomicBool::new(false));
+    let err = |e: std::io::Error| Error::invalid("signal handler", e.to_string());
+    for sig in [SIGINT, SIGTERM] {
+        // Order matters: the conditional exit sees the flag from an earlier signal only.
+        signal_hook::flag::register_conditional_shutdown(sig, 130, flag.clone()).map_err(err)?;
+        signal_hook::flag::register(sig, flag.clone()).map_err(err)?;
+    }
+    Ok(flag)
+}
+
+/// What `[run] source` names.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum SourceChoice {
+    /// A camera device.
+    Camera(String),
+    /// A file or image folder, replayed at its own pace.
+    File(PathBuf),
+    /// The bundled fixture video; `defaulted` when chosen because no source was given and no
+    /// camera was found.
+    Fixture {
+        /// No source given, no camera present.
+        defaulted: bool,
+    },
+}
+
+/// Resolves `source`: `""` is the first camera, else the fixture; `fixture` is the fixture; a
+/// device path or index is a camera; anything else a file.
+pub fn choose_source(source: &str, cameras: impl FnOnce() -> Vec<String>) -> SourceChoice {
+    if source.is_empty() {
+        return match cameras().into_iter().next() {
+            Some(path) => SourceChoice::Camera(path),
+            None => SourceChoice::Fixture { defaulted: true },
+        };
+    }
+    if source == frame::fixture::NAME {
+        return SourceChoice::Fixture { defaulted: false };
+    }
+    if capture::is_camera(source) {
+        return SourceChoice::Camera(source.to_string());
+    }
+    SourceChoice::File(PathBuf::from(source))
+}
+
+fn camera_paths() -> Vec<String> {
+    match capture::list_cameras() {
+        Ok(list) => list.into_iter().map(|c| c.path).collect(),
+        Err(e) => {
+            tracing::debug!("listing cameras: {e}");
+            Vec::new()
+        }
+    }
+}
+
+/// Opens the configured source: the pipeline's [`Source`] and a description for the log.
+pub fn open_source(config: &Config) -> Result<(Source, String)> {
+    let run = &config.run;
+    let size = match run.size.as_str() {
+        "" => None,
+        s => Some(parse_size(s)?),
+    };
+    let sized = move |s: Box<dyn FrameSource>| -> Result<Box<dyn FrameSource>> {
+        match size {
+            Some(size) if size != s.size() => Ok(Box::new(Resized::new(s, size)?)),
+            _ => Ok(s),
+        }
+    };
+    let backoff = (
+        Duration::from_millis(run.reconnect_min_ms),
+        Duration::from_millis(run.reconnect_max_ms),
+    );
+    let choice = choose_source(&run.source, camera_paths);
+    let (mut reopen, live, what): (pipeline::Reopen, bool, String) = match choice {
+        SourceChoice::Camera(device) => {
+            let camera = config.camera.clone();
+            (
+                Box::new(move || sized(capture::open_camera(&device, &camera)?)),
+                true,
+                "camera".into(),
+            )
+        }
+        SourceChoice::File(path) => {
+            let options = SourceOptions {
+                fps: (run.fps > 0.0).then_some(run.fps),
+                linear: false,
+            };
+            (
+                Box::new(move || sized(frame::open(&path, &options)?)),
+                false,
+                "replaying".into(),
+            )
+        }
+        SourceChoice::Fixture { defaulted } => (
+            Box::new(move || sized(frame::fixture::open()?)),
+            false,
+            if defaulted {
+                "no camera found and no source configured: replaying the bundled fixture video"
+                    .into()
+            } else {
+                "replaying the bundled fixture video".into()
+            },
+        ),
+    };
+    let first = reopen()?;
+    let what = format!(
+        "{what} {}{}",
+        first.describe(),
+        match (live, run.loop_source) {
+            (true, _) => String::new(),
+            (false, true) => format!(" at {}x real time, looped", run.replay_speed),
+            (false, false) => format!(" at {}x real time", run.replay_speed),
+        }
+    );
+    Ok((
+        Source {
+            first,
+            reopen: Some(reopen),
+            live,
+            looped: run.loop_source && !live,
+            pace: (!live).then_some(run.replay_speed),
+            backoff,
+        },
+        what,
+    ))
+}
+
+/// Opens the configured outputs for a `width x height` sensor.
+pub fn open_sinks(run: &RunConfig, width: u16, height: u16) -> Result<Vec<Box<dyn Sink>>> {
+    let mut sinks: Vec<Box<dyn Sink>> = Vec::new();
+    if !run.udp.is_empty() {
+        let mut c = UdpConfig::new(&run.udp, run.udp_format);
+        c.max_datagrams_per_s = (run.udp_rate > 0).then_some(f64::from(run.udp_rate));
+        sinks.push(Box::new(UdpSink::new(c)?));
+    }
+    if !run.tcp.is_empty() {
+        sinks.push(Box::new(TcpSink::new(TcpConfig::new(
+            &run.tcp, width, height,
+        ))?));
+    }
+    if !run.out.is_empty() {
+        let path = Path::new(&run.out);
+        let format = Format::for_output(path, None, Compression::Lz4)?;
+        sinks.push(Box::new(FileSink::create(path, format, width, height)?));
+    }
+    if sinks.is_empty() {
+        return Err(Error::invalid("run", "no output: set udp, tcp or out"));
+    }
+    Ok(sinks)
+}
+
+/// The pipeline options of a `[run]` table.
+pub fn options(run: &RunConfig) -> Options {
+    Options {
+        policy: run.queue_policy,
+        capacity: run.queue_capacity,
+        max_frames: (run.max_frames > 0).then_some(run.max_frames),
+        duration: (run.duration > 0.0).then(|| Duration::from_secs_f64(run.duration)),
+        tick: Duration::from_secs_f64(run.stats_interval),
+    }
+}
+
+fn notify(state: &[sd_notify::NotifyState]) {
+    // Outside systemd there is no socket and this does nothing.
+    if let Err(e) = sd_notify::notify(false, state) {
+        tracing::debug!("systemd notification: {e}");
+    }
+}
+
+/// Runs the daemon until the source ends, `stop` is raised or a limit is reached; logs a stats
+/// line every `stats_interval` and mirrors it in the systemd status.
+pub fn run(config: &Config, stop: &AtomicBool) -> Result<Report> {
+    config.run.validate()?;
+    let (source, what) = open_source(config)?;
+    let (w, h) = source.first.size();
+    let sinks = open_sinks(&config.run, w, h)?;
+    let outputs: Vec<String> = sinks.iter().map(|s| s.describe()).collect();
+    tracing::info!(
+        "v2ce {}: {what} -> {} ({}x{}, preset {}, queues {} x{})",
+        env!("CARGO_PKG_VERSION"),
+        outputs.join(", "),
+        w,
+        h,
+        config.stage1.preset.name(),
+        config.run.queue_policy.name(),
+        config.run.queue_capacity
+    );
+    notify(&[
+        sd_notify::NotifyState::Ready,
+        sd_notify::NotifyState::Status(&format!("running: {what}")),
+    ]);
+    let mut on_tick = |s: &pipeline::stats::Snapshot| {
+        let line = s.line();
+        tracing::info!("{line}");
+        notify(&[sd_notify::NotifyState::Status(&line)]);
+        for sink in s.sinks.iter().filter(|k| k.failed.is_some()) {
+            tracing::warn!("output down: {}", sink.sink);
+        }
+    };
+    let report = pipeline::run(
+        source,
+        config,
+        sinks,
+        &options(&config.run),
+        stop,
+        &mut on_tick,
+    );
+    notify(&[sd_notify::NotifyState::Stopping]);
+    let report = report?;
+    let s = &report.stats;
+    let l = &s.latency_total;
+    let summary = format!(
+        "stopped: {}; {} frames in, {} dropped, {} events out in {:.1} s; latency p50 {:.1} ms \
+         p99 {:.1} ms max {:.1} ms; cpu {:.1} s; peak rss {} MiB",
+        report.end.describe(),
+        s.frames_in,
+        s.frames_dropped,
+        s.events_out,
+        s.uptime_s,
+        l.p50_ms,
+        l.p99_ms,
+        l.max_ms,
+        s.cpu_s,
+        s.max_rss_kib / 1024
+    );
+    if report.end.is_clean() {
+        tracing::info!("{summary}");
+    } else {
+        tracing::error!("{summary}");
+    }
+    for sink in &s.sinks {
+        tracing::info!(
+            "{}: {} events sent, {} dropped{}",
+            sink.sink,
+            sink.stats.events_sent,
+            sink.stats.events_dropped,
+            sink.failed
+                .as_ref()
+                .map(|f| format!(" (failed: {f})"))
+                .unwrap_or_default()
+        );
+    }
+    Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sources_resolve() {
+        assert_eq!(
+            choose_source("", Vec::new),
+            SourceChoice::Fixture { defaulted: true }
+        );
+        assert_eq!(
+            choose_source("", || vec!["/dev/video2".into()]),
+            SourceChoice::Camera("/dev/video2".into())
+        );
+        assert_eq!(
+            choose_source("fixture", || panic!("no camera lookup")),
+            SourceChoice::Fixture { defaulted: false }
+        );
+        assert_eq!(
+            choose_source("/dev/video0", Vec::new),
+            SourceChoice::Camera("/dev/video0".into())
+        );
+        assert_eq!(
+            choose_source("clip.mp4", Vec::new),
+            SourceChoice::File("clip.mp4".into())
+        );
+    }
+}

@@ -1,0 +1,213 @@
+//! Resampling frames to another size by area averaging: each output pixel is the mean of the
+//! input area it covers (fractional pixels weighted by coverage). This is the right filter for
+//! linear luminance (it conserves the light), and it does not alias when shrinking.
+
+use super::{Frame, FrameSource};
+use crate::error::{Error, Result};
+
+/// Per-output-pixel spans of input pixels with their weights, along one axis.
+#[derive(Debug, Clone)]
+struct Axis {
+    // (first input index, weights summing to 1)
+    spans: Vec<(usize, Vec<f32>)>,
+}
+
+impl Axis {
+    fn new(from: usize, to: usize) -> Self {
+        let scale = from as f64 / to as f64;
+        let spans = (0..to)
+            .map(|o| {
+                let (a, b) = (o as f64 * scale, (o + 1) as f64 * scale);
+                let first = a.floor() as usize;
+                let last = (b.ceil() as usize).min(from).max(first + 1);
+                let weights: Vec<f32> = (first..last)
+                    .map(|i| {
+                        let covered = (b.min(i as f64 + 1.0) - a.max(i as f64)).max(0.0);
+                        (covered / scale) as f32
+                    })
+                    .collect();
+                let sum: f32 = weights.iter().sum();
+                (first, weights.iter().map(|w| w / sum).collect())
+            })
+            .collect();
+        Axis { spans }
+    }
+}
+
+/// Resamples frames of one size to another.
+#[derive(Debug, Clone)]
+pub struct Resampler {
+    from: (u16, u16),
+    to: (u16, u16),
+    x: Axis,
+    y: Axis,
+    rows: Vec<f32>,
+}
+
+impl Resampler {
+    /// A resampler from `from` to `to` (width, height), both non-zero.
+    pub fn new(from: (u16, u16), to: (u16, u16)) -> Result<Self> {
+        if from.0 == 0 || from.1 == 0 || to.0 == 0 || to.1 == 0 {
+            return Err(Error::invalid(
+                "size",
+                format!("cannot resample {from:?} to {to:?}"),
+            ));
+        }
+        Ok(Resampler {
+            from,
+            to,
+            x: Axis::new(from.0 as usize, to.0 as usize),
+            y: Axis::new(from.1 as usize, to.1 as usize),
+            rows: Vec::new(),
+        })
+    }
+
+    /// `frame` at the target size (the same time).
+    pub fn resample(&mut self, frame: &Frame) -> Result<Frame> {
+        if (frame.width, frame.height) != self.from {
+            return Err(Error::invalid(
+                "frame",
+                format!(
+                    "{}x{} frame given to a resampler for {}x{}",
+                    frame.width, frame.height, self.from.0, self.from.1
+                ),
+            ));
+        }
+        let (fw, fh) = (self.from.0 as usize, self.from.1 as usize);
+        let tw = self.to.0 as usize;
+        // Horizontal pass into f32 rows, then the vertical pass.
+        self.rows.clear();
+        self.rows.resize(tw * fh, 0.0);
+        for y in 0..fh {
+            let src = &frame.luma[y * fw..(y + 1) * fw];
+            let dst = &mut self.rows[y * tw..(y + 1) * tw];
+            for (d, (first, weights)) in dst.iter_mut().zip(&self.x.spans) {
+                *d = weights
+                    .iter()
+                    .zip(&src[*first..])
+                    .map(|(w, &v)| w * v as f32)
+                    .sum();
+            }
+        }
+        let mut luma = Vec::with_capacity(tw * self.to.1 as usize);
+        for (first, weights) in &self.y.spans {
+            for x in 0..tw {
+                let v: f32 = weights
+                    .iter()
+                    .enumerate()
+                    .map(|(k, w)| w * self.rows[(first + k) * tw + x])
+                    .sum();
+                luma.push(v.round().clamp(0.0, u16::MAX as f32) as u16);
+            }
+        }
+        Ok(Frame {
+            t: frame.t,
+            width: self.to.0,
+            height: self.to.1,
+            luma,
+        })
+    }
+}
+
+/// A source whose frames are resampled to a fixed size.
+pub struct Resized {
+    inner: Box<dyn FrameSource>,
+    resampler: Option<Resampler>,
+    size: (u16, u16),
+}
+
+impl Resized {
+    /// Wraps `inner`; frames already at `size` pass through untouched.
+    pub fn new(inner: Box<dyn FrameSource>, size: (u16, u16)) -> Result<Self> {
+        let from = inner.size();
+        let resampler = if from == size {
+            None
+        } else {
+            Some(Resampler::new(from, size)?)
+        };
+        Ok(Resized {
+            inner,
+            resampler,
+            size,
+        })
+    }
+}
+
+impl FrameSource for Resized {
+    fn size(&self) -> (u16, u16) {
+        self.size
+    }
+
+    fn next_frame(&mut self) -> Result<Option<Frame>> {
+        let Some(frame) = self.inner.next_frame()? else {
+            return Ok(None);
+        };
+        match &mut self.resampler {
+            None => Ok(Some(frame)),
+            Some(r) => r.resample(&frame).map(Some),
+        }
+    }
+
+    fn describe(&self) -> String {
+        match &self.resampler {
+            None => self.inner.describe(),
+            Some(r) => format!(
+                "{} resampled to {}x{}",
+                self.inner.describe(),
+                r.to.0,
+                r.to.1
+            ),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn halving_averages_blocks_and_conserves_light() {
+        let luma: Vec<u16> = (0..16).map(|i| i * 1000).collect();
+        let frame = Frame {
+            t: 7,
+            width: 4,
+            height: 4,
+            luma,
+        };
+        let out = Resampler::new((4, 4), (2, 2))
+            .unwrap()
+            .resample(&frame)
+            .unwrap();
+        assert_eq!(out.t, 7);
+        // Block (0,0): pixels 0, 1, 4, 5 -> mean 2.5 * 1000.
+        assert_eq!(out.luma, vec![2500, 4500, 10500, 12500]);
+    }
+
+    #[test]
+    fn odd_ratio_keeps_a_flat_frame_flat_and_conserves_a_ramp() {
+        let frame = Frame::filled(0, 640, 480, 30_000);
+        let mut r = Resampler::new((640, 480), (346, 260)).unwrap();
+        let out = r.resample(&frame).unwrap();
+        assert_eq!((out.width, out.height), (346, 260));
+        assert!(out.luma.iter().all(|&v| v == 30_000));
+        let ramp = Frame {
+            t: 0,
+            width: 640,
+            height: 480,
+            luma: (0..640 * 480).map(|i| ((i % 640) * 100) as u16).collect(),
+        };
+        let out = r.resample(&ramp).unwrap();
+        let mean_in: f64 =
+            ramp.luma.iter().map(|&v| v as f64).sum::<f64>() / ramp.luma.len() as f64;
+        let mean_out: f64 = out.luma.iter().map(|&v| v as f64).sum::<f64>() / out.luma.len() as f64;
+        assert!((mean_in - mean_out).abs() < 1.0, "{mean_in} vs {mean_out}");
+        assert!(out.luma.windows(2).take(345).all(|w| w[0] < w[1]));
+    }
+
+    #[test]
+    fn wrong_size_is_an_error() {
+        let mut r = Resampler::new((4, 4), (2, 2)).unwrap();
+        assert!(r.resample(&Frame::filled(0, 3, 4, 0)).is_err());
+        assert!(Resampler::new((0, 4), (2, 2)).is_err());
+    }
+}

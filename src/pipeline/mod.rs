@@ -1,0 +1,587 @@
+//! The pipeline: frames from a source through Stage 1 and Stage 2 into sinks, one thread per
+//! stage, joined by bounded queues.
+//!
+//! ```text
+//! capture ──q──▶ sequencer ──q──▶ Stage 1 ──q──▶ Stage 2 ──┬─q──▶ sink 0 (encode + send)
+//!  (source,        (time order,     (pixel model,  (sampler,  ├─q──▶ sink 1
+//!   pacing,         gaps)            voxelizer)     fan-out)   └─q──▶ ...
+//!   reconnects)
+//! ```
+//!
+//! - **capture** reads the source: a camera (reopened with backoff when it fails) or a file,
+//!   replayed at its own pace when asked (`speed`), looped when asked. It stamps each frame with
+//!   the instant it arrived, the start of the capture-to-send latency.
+//! - **sequencer** keeps frame times strictly increasing (a frame that does not come after the
+//!   previous one is rejected and counted).
+//! - **Stage 1** runs the pixel model ([`steps::Stage1Step`]), **Stage 2** the sampler
+//!   ([`steps::Stage2Step`]), and fans each frame's events out to one queue per sink.
+//! - each **sink** thread encodes and sends. A sink that fails is reported and drained; the
+//!   others go on. When every sink has failed the pipeline stops with an error.
+//!
+//! Every queue applies one [`QueuePolicy`] (block, or drop-oldest with counters). Shutdown
+//! flows downstream: the capture thread stops (stop flag, end of source, `max_frames`,
+//! `duration`, or a failure), each stage drains its input and ends when its producer has gone,
+//! and the sinks are finished last, so nothing already queued is lost.
+
+pub mod clock;
+pub mod queue;
+pub mod stats;
+pub mod steps;
+
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use serde::Serialize;
+
+use crate::config::Config;
+use crate::error::{Error, Result};
+use crate::event::Event;
+use crate::frame::resize::Resized;
+use crate::frame::{Frame, FrameSource};
+use crate::sink::Sink;
+use crate::stage1::PhysicsStats;
+use clock::{sleep_unless, Pacer};
+use queue::{queue, QueuePolicy, QueueRx, QueueTx, Weight};
+use stats::{Counters, Snapshot};
+use steps::{Stage1Batch, Stage1Step, Stage2Step};
+
+/// Opens the source again (a camera after a failure, a file to loop).
+pub type Reopen = Box<dyn FnMut() -> Result<Box<dyn FrameSource>> + Send>;
+
+/// Where frames come from and how they are read.
+pub struct Source {
+    /// The source, already open (its size fixes the pipeline's).
+    pub first: Box<dyn FrameSource>,
+    /// Opens it again; needed for `live` and `looped`.
+    pub reopen: Option<Reopen>,
+    /// A live camera: a read error reopens it with backoff instead of ending the run.
+    pub live: bool,
+    /// Start over at the end (times go on increasing).
+    pub looped: bool,
+    /// Replay at this multiple of real time (file sources); `None`: as fast as the pipeline
+    /// takes the frames.
+    pub pace: Option<f64>,
+    /// First and longest wait between reopening attempts.
+    pub backoff: (Duration, Duration),
+}
+
+impl Source {
+    /// A file read as fast as the pipeline goes (offline conversion).
+    pub fn file(first: Box<dyn FrameSource>) -> Self {
+        Source {
+            first,
+            reopen: None,
+            live: false,
+            looped: false,
+            pace: None,
+            backoff: (Duration::from_millis(500), Duration::from_secs(10)),
+        }
+    }
+}
+
+/// How the pipeline runs.
+#[derive(Debug, Clone)]
+pub struct Options {
+    /// What a full queue does.
+    pub policy: QueuePolicy,
+    /// Capacity of each queue, in frames.
+    pub capacity: usize,
+    /// Stop after this many frames.
+    pub max_frames: Option<u64>,
+    /// Stop after this long.
+    pub duration: Option<Duration>,
+    /// How often `on_tick` gets a snapshot.
+    pub tick: Duration,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options {
+            policy: QueuePolicy::Block,
+            capacity: 4,
+            max_frames: None,
+            duration: None,
+            tick: Duration::from_secs(10),
+        }
+    }
+}
+
+/// Why the pipeline stopped.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum End {
+    /// The source ended (a file read to its end).
+    SourceEnded,
+    /// The stop flag was raised (SIGINT / SIGTERM).
+    Stopped,
+    /// `max_frames` were read.
+    MaxFrames,
+    /// `duration` passed.
+    Duration,
+    /// The source failed and cannot be reopened (a file).
+    SourceFailed(String),
+    /// A stage failed, or every sink did.
+    Failed(String),
+}
+
+impl End {
+    /// Whether the run ended as asked (not by an error).
+    pub fn is_clean(&self) -> bool {
+        !matches!(self, End::SourceFailed(_) | End::Failed(_))
+    }
+
+    /// Words for the log.
+    pub fn describe(&self) -> String {
+        match self {
+            End::SourceEnded => "the source ended".into(),
+            End::Stopped => "stopped by a signal".into(),
+            End::MaxFrames => "reached the frame limit".into(),
+            End::Duration => "reached the time limit".into(),
+            End::SourceFailed(e) => format!("the source failed: {e}"),
+            End::Failed(e) => format!("failed: {e}"),
+        }
+    }
+}
+
+/// What a run did.
+#[derive(Debug, Clone, Serialize)]
+pub struct Report {
+    /// Why it stopped.
+    pub end: End,
+    /// The counters at the end (the latency covers the whole run in `latency_total`).
+    pub stats: Snapshot,
+    /// The pixel model's counters.
+    pub physics: PhysicsStats,
+    /// Time of the first and last frame read, us.
+    pub first_t: Option<i64>,
+    /// See `first_t`.
+    pub last_t: Option<i64>,
+}
+
+struct Captured {
+    frame: Frame,
+    at: Instant,
+    // Bumped each time a live source is reopened: Stage 1 starts over on a new generation.
+    generation: u64,
+}
+
+struct Computed {
+    batch: Stage1Batch,
+    at: Instant,
+}
+
+/// One frame's events on their way to the sinks.
+pub struct Batch {
+    /// The events, in time order.
+    pub events: Vec<Event>,
+    /// When the frame that closed their interval was captured.
+    pub at: Instant,
+}
+
+impl Weight for Captured {
+    fn weight(&self) -> u64 {
+        1
+    }
+}
+impl Weight for Computed {
+    fn weight(&self) -> u64 {
+        self.batch.weight()
+    }
+}
+impl Weight for Arc<Batch> {
+    fn weight(&self) -> u64 {
+        self.events.len() as u64
+    }
+}
+
+struct Ctx<'a> {
+    stop: &'a AtomicBool,
+    halt: AtomicBool,
+    failure: Mutex<Option<String>>,
+    counters: Arc<Counters>,
+}
+
+impl Ctx<'_> {
+    fn stopping(&self) -> bool {
+        self.stop.load(Ordering::Relaxed) || self.halt.load(Ordering::Relaxed)
+    }
+
+    fn fail(&self, message: String) {
+        tracing::error!("{message}");
+        let mut f = self.failure.lock().unwrap_or_else(|e| e.into_inner());
+        f.get_or_insert(message);
+        self.halt.store(true, Ordering::Relaxed);
+    }
+}
+
+/// Runs `source` through the stages into `sinks` until the source ends, `stop` is raised, a
+/// limit is reached or something fails. `on_tick` gets a snapshot every `options.tick`.
+/// The sinks are finished before this returns.
+pub fn run(
+    source: Source,
+    config: &Config,
+    sinks: Vec<Box<dyn Sink>>,
+    options: &Options,
+    stop: &AtomicBool,
+    on_tick: &mut dyn FnMut(&Snapshot),
+) -> Result<Report> {
+    if sinks.is_empty() {
+        return Err(Error::invalid("sinks", "no output configured"));
+    }
+    let size = source.first.size();
+    let counters = Arc::new(Counters::new());
+    let ctx = Ctx {
+        stop,
+        halt: AtomicBool::new(false),
+        failure: Mutex::new(None),
+        counters: counters.clone(),
+    };
+    let policy = options.policy;
+    let cap = options.capacity;
+    let (cap_tx, cap_rx, s) = queue::<Captured>("capture", cap, policy);
+    counters.watch_queue(s);
+    let (seq_tx, seq_rx, s) = queue::<Captured>("sequenced", cap, policy);
+    counters.watch_queue(s);
+    let (s1_tx, s1_rx, s) = queue::<Computed>("stage1", cap, policy);
+    counters.watch_queue(s);
+    let mut sink_txs = Vec::new();
+    let mut sink_ends = Vec::new();
+    for (i, sink) in sinks.into_iter().enumerate() {
+        let (tx, rx, s) = queue::<Arc<Batch>>(&format!("sink{i}"), cap, policy);
+        counters.watch_queue(s);
+        let index = counters.add_sink(sink.describe());
+        sink_txs.push(tx);
+        sink_ends.push((sink, rx, index));
+    }
+    let sink_count = sink_ends.len();
+    let failed_sinks = AtomicUsize::new(0);
+    let physics = Mutex::new(PhysicsStats::default());
+    let times = Mutex::new((None, None));
+
+    let end = std::thread::scope(|scope| -> Result<End> {
+        let spawn_err = |e: std::io::Error| Error::invalid("thread", e.to_string());
+        let mut handles = Vec::new();
+        let ctx = &ctx;
+        let capture = std::thread::Builder::new()
+            .name("v2ce-capture".into())
+            .spawn_scoped(scope, {
+                let times = &times;
+                move || capture_stage(source, size, cap_tx, options, ctx, times)
+            })
+            .map_err(spawn_err)?;
+        handles.push(
+            std::thread::Builder::new()
+                .name("v2ce-sequencer".into())
+                .spawn_scoped(scope, move || sequencer_stage(cap_rx, seq_tx, ctx))
+                .map_err(spawn_err)?,
+        );
+        handles.push(
+            std::thread::Builder::new()
+                .name("v2ce-stage1".into())
+                .spawn_scoped(scope, {
+                    let physics = &physics;
+                    move || stage1_stage(seq_rx, s1_tx, config, size, ctx, physics)
+                })
+                .map_err(spawn_err)?,
+        );
+        handles.push(
+            std::thread::Builder::new()
+                .name("v2ce-stage2".into())
+                .spawn_scoped(scope, move || stage2_stage(s1_rx, sink_txs, config, ctx))
+                .map_err(spawn_err)?,
+        );
+        for (sink, rx, index) in sink_ends {
+            let failed_sinks = &failed_sinks;
+            handles.push(
+                std::thread::Builder::new()
+                    .name(format!("v2ce-sink{index}"))
+                    .spawn_scoped(scope, move || {
+                        sink_stage(sink, rx, index, ctx, failed_sinks, sink_count)
+                    })
+                    .map_err(spawn_err)?,
+            );
+        }
+        let mut next_tick = Instant::now() + options.tick;
+        while !(capture.is_finished() && handles.iter().all(|h| h.is_finished())) {
+            std::thread::sleep(Duration::from_millis(10));
+            if Instant::now() >= next_tick {
+                on_tick(&counters.snapshot());
+                next_tick += options.tick;
+            }
+        }
+        let end = capture
+            .join()
+            .map_err(|_| Error::invalid("pipeline", "the capture thread panicked"))?;
+        for h in handles {
+            h.join()
+                .map_err(|_| Error::invalid("pipeline", "a stage thread panicked"))?;
+        }
+        Ok(end)
+    })?;
+    let failure = ctx.failure.lock().unwrap_or_else(|e| e.into_inner()).take();
+    let end = match failure {
+        Some(message) => End::Failed(message),
+        None => end,
+    };
+    let (first_t, last_t) = *times.lock().unwrap_or_else(|e| e.into_inner());
+    let physics = *physics.lock().unwrap_or_else(|e| e.into_inner());
+    Ok(Report {
+        end,
+        stats: counters.snapshot(),
+        physics,
+        first_t,
+        last_t,
+    })
+}
+
+fn capture_stage(
+    source: Source,
+    size: (u16, u16),
+    tx: QueueTx<Captured>,
+    options: &Options,
+    ctx: &Ctx,
+    times: &Mutex<(Option<i64>, Option<i64>)>,
+) -> End {
+    let Source {
+        first,
+        mut reopen,
+        live,
+        looped,
+        pace,
+        backoff,
+    } = source;
+    let mut current = first;
+    let mut pacer = pace.map(Pacer::new);
+    let deadline = options.duration.map(|d| Instant::now() + d);
+    let stopping = || ctx.stopping();
+    let mut frames = 0u64;
+    let mut generation = 0u64;
+    let (mut offset, mut period, mut realign) = (0i64, 0i64, false);
+    let mut last_t: Option<i64> = None;
+    loop {
+        if ctx.stopping() {
+            return End::Stopped;
+        }
+        if options.max_frames.is_some_and(|m| frames >= m) {
+            return End::MaxFrames;
+        }
+        if deadline.is_some_and(|d| Instant::now() >= d) {
+            return End::Duration;
+        }
+        match current.next_frame() {
+            Ok(Some(mut frame)) => {
+                if realign {
+                    // A looped replay goes on one frame period after the last frame.
+                    offset = last_t.map_or(0, |l| l + period.max(1) - frame.t);
+                    realign = false;
+                }
+                frame.t += offset;
+                if let Some(p) = pacer.as_mut() {
+                    if !p.wait(frame.t, &stopping) {
+                        return End::Stopped;
+                    }
+                }
+                if let Some(l) = last_t {
+                    if frame.t > l {
+                        period = frame.t - l;
+                    }
+                }
+                last_t = Some(frame.t);
+                {
+                    let mut t = times.lock().unwrap_or_else(|e| e.into_inner());
+                    t.0.get_or_insert(frame.t);
+                    t.1 = Some(frame.t);
+                }
+                frames += 1;
+                Counters::bump(&ctx.counters.frames_in);
+                let item = Captured {
+                    frame,
+                    at: Instant::now(),
+                    generation,
+                };
+                if tx.push(item).is_err() {
+                    // The next stage has gone, having recorded why.
+                    return End::Stopped;
+                }
+            }
+            Ok(None) if looped => match reopen.as_mut().map(|r| open_sized(r, size)) {
+                Some(Ok(source)) => {
+                    tracing::info!("replay looped: {}", source.describe());
+                    Counters::bump(&ctx.counters.source_restarts);
+                    current = source;
+                    realign = true;
+                }
+                Some(Err(e)) => return End::SourceFailed(format!("reopening to loop: {e}")),
+                None => return End::SourceEnded,
+            },
+            Ok(None) if !live => return End::SourceEnded,
+            Err(e) if !live => return End::SourceFailed(e.to_string()),
+            other => {
+                let why = match other {
+                    Err(e) => e.to_string(),
+                    _ => "the stream ended".to_string(),
+                };
+                tracing::warn!("{}: {why}; reopening", current.describe());
+                let Some(r) = reopen.as_mut() else {
+                    return End::SourceFailed(why);
+                };
+                let mut wait = backoff.0;
+                current = loop {
+                    if !sleep_unless(wait, &stopping) {
+                        return End::Stopped;
+                    }
+                    match open_sized(r, size) {
+                        Ok(s) => {
+                            tracing::info!("source back: {}", s.describe());
+                            break s;
+                        }
+                        Err(e) => {
+                            wait = (wait * 2).min(backoff.1);
+                            tracing::warn!("reopening failed: {e}; next try in {wait:?}");
+                        }
+                    }
+                };
+                generation += 1;
+                Counters::bump(&ctx.counters.source_restarts);
+                if let Some(p) = pacer.as_mut() {
+                    *p = Pacer::new(pace.unwrap_or(1.0));
+                }
+            }
+        }
+    }
+}
+
+fn open_sized(reopen: &mut Reopen, size: (u16, u16)) -> Result<Box<dyn FrameSource>> {
+    let source = reopen()?;
+    if source.size() == size {
+        return Ok(source);
+    }
+    Ok(Box::new(Resized::new(source, size)?))
+}
+
+fn sequencer_stage(rx: QueueRx<Captured>, tx: QueueTx<Captured>, ctx: &Ctx) {
+    let mut last: Option<i64> = None;
+    while let Some(item) = rx.recv() {
+        if let Some(l) = last {
+            if item.frame.t <= l {
+                let n = ctx
+                    .counters
+                    .frames_out_of_order
+                    .fetch_add(1, Ordering::Relaxed);
+                if n == 0 || n.is_power_of_two() {
+                    tracing::warn!(
+                        "frame at {} us does not come after {} us: dropped ({} so far)",
+                        item.frame.t,
+                        l,
+                        n + 1
+                    );
+                }
+                continue;
+            }
+        }
+        last = Some(item.frame.t);
+        if tx.push(item).is_err() {
+            return;
+        }
+    }
+}
+
+fn stage1_stage(
+    rx: QueueRx<Captured>,
+    tx: QueueTx<Computed>,
+    config: &Config,
+    size: (u16, u16),
+    ctx: &Ctx,
+    physics: &Mutex<PhysicsStats>,
+) {
+    let mut step = match Stage1Step::new(config, size.0, size.1) {
+        Ok(s) => s,
+        Err(e) => return ctx.fail(format!("Stage 1: {e}")),
+    };
+    let mut generation = 0;
+    while let Some(item) = rx.recv() {
+        if item.generation != generation {
+            generation = item.generation;
+            if let Err(e) = step.restart() {
+                return ctx.fail(format!("Stage 1: {e}"));
+            }
+        }
+        let batch = match step.process(&item.frame) {
+            Ok(b) => b,
+            Err(e) => return ctx.fail(format!("Stage 1 at {} us: {e}", item.frame.t)),
+        };
+        Counters::bump(&ctx.counters.frames_processed);
+        *physics.lock().unwrap_or_else(|e| e.into_inner()) = step.stats();
+        if tx.push(Computed { batch, at: item.at }).is_err() {
+            return;
+        }
+    }
+}
+
+fn stage2_stage(
+    rx: QueueRx<Computed>,
+    sinks: Vec<QueueTx<Arc<Batch>>>,
+    config: &Config,
+    ctx: &Ctx,
+) {
+    let step = Stage2Step::new(config);
+    while let Some(item) = rx.recv() {
+        let events = step.process(item.batch);
+        ctx.counters
+            .events_out
+            .fetch_add(events.len() as u64, Ordering::Relaxed);
+        let batch = Arc::new(Batch {
+            events,
+            at: item.at,
+        });
+        let mut delivered = false;
+        for tx in &sinks {
+            delivered |= tx.push(batch.clone()).is_ok();
+        }
+        if !delivered {
+            return;
+        }
+    }
+}
+
+fn sink_stage(
+    mut sink: Box<dyn Sink>,
+    rx: QueueRx<Arc<Batch>>,
+    index: usize,
+    ctx: &Ctx,
+    failed_sinks: &AtomicUsize,
+    sink_count: usize,
+) {
+    let mut failed = false;
+    let fail = |sink: &dyn Sink, what: &str, e: Error| {
+        let message = format!("{}: {what}: {e}", sink.describe());
+        tracing::error!("{message}; the other outputs go on");
+        ctx.counters
+            .update_sink(index, sink.stats(), Some(message.clone()));
+        if failed_sinks.fetch_add(1, Ordering::Relaxed) + 1 == sink_count {
+            ctx.fail(format!("every output failed (last: {message})"));
+        }
+    };
+    while let Some(batch) = rx.recv() {
+        if failed {
+            // Drained, so the stages upstream never wait on a dead output.
+            continue;
+        }
+        if !batch.events.is_empty() {
+            if let Err(e) = sink.send(&batch.events) {
+                failed = true;
+                fail(sink.as_ref(), "send failed", e);
+                continue;
+            }
+        }
+        ctx.counters.record_latency(batch.at.elapsed());
+        ctx.counters.update_sink(index, sink.stats(), None);
+    }
+    if !failed {
+        match sink.finish() {
+            Ok(()) => ctx.counters.update_sink(index, sink.stats(), None),
+            Err(e) => fail(sink.as_ref(), "closing failed", e),
+        }
+    }
+}

@@ -1,0 +1,377 @@
+//! The pipeline's counters and latency histograms, and the snapshots the daemon logs and
+//! reports to systemd.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use hdrhistogram::Histogram;
+use serde::Serialize;
+
+use super::queue::QueueStats;
+use crate::sink::SinkStats;
+
+/// Shared counters, updated by the stage threads.
+pub struct Counters {
+    started: Instant,
+    /// Frames read from the source.
+    pub frames_in: AtomicU64,
+    /// Frames the sequencer rejected (a time not after the previous frame's).
+    pub frames_out_of_order: AtomicU64,
+    /// Frames through Stage 1.
+    pub frames_processed: AtomicU64,
+    /// Events handed to the sinks.
+    pub events_out: AtomicU64,
+    /// Times the source was reopened (a camera that came back, a replay that looped).
+    pub source_restarts: AtomicU64,
+    latency: Mutex<LatencyPair>,
+    queues: Mutex<Vec<Arc<QueueStats>>>,
+    sinks: Mutex<Vec<SinkSnapshot>>,
+    last: Mutex<Option<Mark>>,
+}
+
+struct LatencyPair {
+    interval: Histogram<u64>,
+    total: Histogram<u64>,
+}
+
+// The state at the previous snapshot, for rates.
+#[derive(Clone, Copy)]
+struct Mark {
+    at: Instant,
+    events_out: u64,
+    frames_in: u64,
+    cpu_s: f64,
+}
+
+/// Latency percentiles in milliseconds.
+#[derive(Debug, Clone, Copy, Default, Serialize, PartialEq)]
+pub struct Latency {
+    /// Samples (one per frame and sink).
+    pub count: u64,
+    /// Median.
+    pub p50_ms: f64,
+    /// 90th percentile.
+    pub p90_ms: f64,
+    /// 99th percentile.
+    pub p99_ms: f64,
+    /// Largest.
+    pub max_ms: f64,
+}
+
+impl Latency {
+    fn of(h: &Histogram<u64>) -> Self {
+        if h.is_empty() {
+            return Latency::default();
+        }
+        let ms = |us: u64| us as f64 / 1000.0;
+        Latency {
+            count: h.len(),
+            p50_ms: ms(h.value_at_quantile(0.5)),
+            p90_ms: ms(h.value_at_quantile(0.9)),
+            p99_ms: ms(h.value_at_quantile(0.99)),
+            max_ms: ms(h.max()),
+        }
+    }
+}
+
+/// One queue's state.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct QueueSnapshot {
+    /// Its name.
+    pub name: String,
+    /// Items waiting.
+    pub depth: usize,
+    /// Capacity.
+    pub capacity: usize,
+    /// Items evicted so far (drop-oldest).
+    pub dropped: u64,
+    /// Events in the evicted items.
+    pub dropped_events: u64,
+}
+
+/// One sink's state.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct SinkSnapshot {
+    /// What it is.
+    pub sink: String,
+    /// Its counters.
+    pub stats: SinkStats,
+    /// Why it stopped, if it failed.
+    pub failed: Option<String>,
+}
+
+/// The pipeline at one moment.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct Snapshot {
+    /// Seconds since the start.
+    pub uptime_s: f64,
+    /// Frames read from the source.
+    pub frames_in: u64,
+    /// Frames through Stage 1.
+    pub frames_processed: u64,
+    /// Frames evicted from the frame queues (drop-oldest) or rejected as out of order.
+    pub frames_dropped: u64,
+    /// Of those, rejected as out of order.
+    pub frames_out_of_order: u64,
+    /// Times the source was reopened.
+    pub source_restarts: u64,
+    /// Events handed to the sinks.
+    pub events_out: u64,
+    /// Events per second since the previous snapshot.
+    pub events_per_s: f64,
+    /// Frames per second read since the previous snapshot.
+    pub frames_per_s: f64,
+    /// Queue depths and drops.
+    pub queues: Vec<QueueSnapshot>,
+    /// Capture-to-send latency since the previous snapshot.
+    pub latency: Latency,
+    /// Capture-to-send latency since the start.
+    pub latency_total: Latency,
+    /// The sinks.
+    pub sinks: Vec<SinkSnapshot>,
+    /// Process CPU time (user + system), seconds.
+    pub cpu_s: f64,
+    /// Process CPU use since the previous snapshot, percent of one core.
+    pub cpu_percent: f64,
+    /// Resident memory now, KiB.
+    pub rss_kib: u64,
+    /// Peak resident memory, KiB.
+    pub max_rss_kib: u64,
+}
+
+impl Snapshot {
+    /// One log line: frames, drops, rates, queues, latency.
+    pub fn line(&self) -> String {
+        let queues: Vec<String> = self
+            .queues
+            .iter()
+            .map(|q| format!("{}={}/{}", q.name, q.depth, q.capacity))
+            .collect();
+        let l = &self.latency;
+        format!(
+            "frames in {} (dropped {}), {:.1} frames/s, {:.0} events/s, {} events; queues {}; \
+             latency p50 {:.1} ms p90 {:.1} ms p99 {:.1} ms max {:.1} ms; cpu {:.0}%, rss {} MiB",
+            self.frames_in,
+            self.frames_dropped,
+            self.frames_per_s,
+            self.events_per_s,
+            self.events_out,
+            queues.join(" "),
+            l.p50_ms,
+            l.p90_ms,
+            l.p99_ms,
+            l.max_ms,
+            self.cpu_percent,
+            self.rss_kib / 1024
+        )
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    // A stage that panicked while holding a lock left only counters behind: keep using them.
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+fn histogram() -> Histogram<u64> {
+    // 1 us .. 1 hour at 3 significant digits; `saturating_record` clamps outliers.
+    Histogram::new_with_bounds(1, 3_600_000_000, 3).expect("constant, valid histogram bounds")
+}
+
+impl Default for Counters {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Counters {
+    /// Fresh counters; the uptime starts now.
+    pub fn new() -> Self {
+        Counters {
+            started: Instant::now(),
+            frames_in: AtomicU64::new(0),
+            frames_out_of_order: AtomicU64::new(0),
+            frames_processed: AtomicU64::new(0),
+            events_out: AtomicU64::new(0),
+            source_restarts: AtomicU64::new(0),
+            latency: Mutex::new(LatencyPair {
+                interval: histogram(),
+                total: histogram(),
+            }),
+            queues: Mutex::new(Vec::new()),
+            sinks: Mutex::new(Vec::new()),
+            last: Mutex::new(None),
+        }
+    }
+
+    /// Adds 1 to a counter.
+    pub fn bump(counter: &AtomicU64) {
+        counter.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Registers a queue for the snapshots.
+    pub fn watch_queue(&self, q: Arc<QueueStats>) {
+        lock(&self.queues).push(q);
+    }
+
+    /// Registers a sink; returns its index for [`Counters::update_sink`].
+    pub fn add_sink(&self, describe: String) -> usize {
+        let mut sinks = lock(&self.sinks);
+        sinks.push(SinkSnapshot {
+            sink: describe,
+            stats: SinkStats::default(),
+            failed: None,
+        });
+        sinks.len() - 1
+    }
+
+    /// Publishes a sink's counters (and its failure).
+    pub fn update_sink(&self, index: usize, stats: SinkStats, failed: Option<String>) {
+        if let Some(s) = lock(&self.sinks).get_mut(index) {
+            s.stats = stats;
+            if failed.is_some() {
+                s.failed = failed;
+            }
+        }
+    }
+
+    /// Records one capture-to-send latency.
+    pub fn record_latency(&self, latency: Duration) {
+        let us = latency.as_micros().min(u64::MAX as u128) as u64;
+        let mut l = lock(&self.latency);
+        l.interval.saturating_record(us.max(1));
+        l.total.saturating_record(us.max(1));
+    }
+
+    /// The state now; rates and the interval latency cover the time since the previous call.
+    pub fn snapshot(&self) -> Snapshot {
+        let now = Instant::now();
+        let usage = ProcessUsage::now();
+        let (latency, latency_total) = {
+            let mut l = lock(&self.latency);
+            let pair = (Latency::of(&l.interval), Latency::of(&l.total));
+            l.interval.reset();
+            pair
+        };
+        let queues: Vec<QueueSnapshot> = lock(&self.queues)
+            .iter()
+            .map(|q| QueueSnapshot {
+                name: q.name.clone(),
+                depth: q.depth(),
+                capacity: q.capacity,
+                dropped: q.dropped(),
+                dropped_events: q.dropped_weight(),
+            })
+            .collect();
+        let frames_in = self.frames_in.load(Ordering::Relaxed);
+        let events_out = self.events_out.load(Ordering::Relaxed);
+        let out_of_order = self.frames_out_of_order.load(Ordering::Relaxed);
+        // Frames are lost in the queues before the sinks (a sink queue loses events instead).
+        let frames_evicted: u64 = queues
+            .iter()
+            .filter(|q| !q.name.starts_with("sink"))
+            .map(|q| q.dropped)
+            .sum();
+        let mark = Mark {
+            at: now,
+            events_out,
+            frames_in,
+            cpu_s: usage.cpu_s,
+        };
+        let previous = lock(&self.last).replace(mark).unwrap_or(Mark {
+            at: self.started,
+            events_out: 0,
+            frames_in: 0,
+            cpu_s: 0.0,
+        });
+        let dt = (now - previous.at).as_secs_f64().max(1e-9);
+        Snapshot {
+            uptime_s: (now - self.started).as_secs_f64(),
+            frames_in,
+            frames_processed: self.frames_processed.load(Ordering::Relaxed),
+            frames_dropped: frames_evicted + out_of_order,
+            frames_out_of_order: out_of_order,
+            source_restarts: self.source_restarts.load(Ordering::Relaxed),
+            events_out,
+            events_per_s: (events_out - previous.events_out) as f64 / dt,
+            frames_per_s: (frames_in - previous.frames_in) as f64 / dt,
+            queues,
+            latency,
+            latency_total,
+            sinks: lock(&self.sinks).clone(),
+            cpu_s: usage.cpu_s,
+            cpu_percent: 100.0 * (usage.cpu_s - previous.cpu_s) / dt,
+            rss_kib: usage.rss_kib,
+            max_rss_kib: usage.max_rss_kib,
+        }
+    }
+}
+
+/// The process's CPU time and memory.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct ProcessUsage {
+    /// User + system CPU seconds.
+    pub cpu_s: f64,
+    /// Resident set now, KiB (0 where /proc is missing).
+    pub rss_kib: u64,
+    /// Peak resident set, KiB.
+    pub max_rss_kib: u64,
+}
+
+impl ProcessUsage {
+    /// Reads them now.
+    pub fn now() -> Self {
+        // SAFETY: getrusage writes one plain struct that we own.
+        let mut ru: libc::rusage = unsafe { std::mem::zeroed() };
+        let ok = unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut ru) } == 0;
+        let secs = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+        let (cpu_s, max_rss_kib) = if ok {
+            (
+                secs(ru.ru_utime) + secs(ru.ru_stime),
+                ru.ru_maxrss.max(0) as u64,
+            )
+        } else {
+            (0.0, 0)
+        };
+        // Field 2 of /proc/self/statm: resident pages.
+        let page_kib = (unsafe { libc::sysconf(libc::_SC_PAGESIZE) }.max(4096) / 1024) as u64;
+        let rss_kib = std::fs::read_to_string("/proc/self/statm")
+            .ok()
+            .and_then(|s| s.split_whitespace().nth(1)?.parse::<u64>().ok())
+            .map_or(0, |pages| pages * page_kib);
+        ProcessUsage {
+            cpu_s,
+            rss_kib,
+            max_rss_kib,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn latency_percentiles_and_interval_reset() {
+        let c = Counters::new();
+        for ms in 1..=100 {
+            c.record_latency(Duration::from_millis(ms));
+        }
+        let s = c.snapshot();
+        assert_eq!(s.latency.count, 100);
+        assert!((s.latency.p50_ms - 50.0).abs() < 0.1, "{:?}", s.latency);
+        assert!((s.latency.p99_ms - 99.0).abs() < 0.1, "{:?}", s.latency);
+        assert!((s.latency.max_ms - 100.0).abs() < 0.1, "{:?}", s.latency);
+        c.record_latency(Duration::from_millis(5));
+        let s = c.snapshot();
+        assert_eq!(s.latency.count, 1);
+        assert_eq!(s.latency_total.count, 101);
+    }
+
+    #[test]
+    fn process_usage_is_read() {
+        let u = ProcessUsage::now();
+        assert!(u.max_rss_kib > 0);
+        assert!(u.rss_kib > 0);
+    }
+}
