@@ -52,6 +52,8 @@ pub struct RunConfig {
     pub udp_rate: u32,
     /// Serve DV's AEDAT 4.0 network stream on this `HOST:PORT` (`""`: no TCP).
     pub tcp: String,
+    /// Hold the source until the first TCP client has connected (nothing is streamed before).
+    pub wait_for_client: bool,
     /// Also write events to this file; the extension picks the format (`""`: none).
     pub out: String,
     /// What a full queue does: "drop-oldest" (stay live) or "block" (lose nothing).
@@ -82,6 +84,7 @@ impl Default for RunConfig {
             udp_format: UdpFormat::Spif,
             udp_rate: 0,
             tcp: String::new(),
+            wait_for_client: false,
             out: String::new(),
             queue_policy: QueuePolicy::DropOldest,
             queue_capacity: 4,
@@ -130,6 +133,9 @@ impl RunConfig {
         }
         if !self.size.is_empty() {
             parse_size(&self.size)?;
+        }
+        if self.wait_for_client && self.tcp.is_empty() {
+            return bad("run.wait_for_client", "needs a tcp address".into());
         }
         if self.udp.is_empty() && self.tcp.is_empty() && self.out.is_empty() {
             return bad("run", "no output: set udp, tcp or out".into());

@@ -208,6 +208,17 @@ pub fn run(config: &Config, stop: &AtomicBool) -> Result<Report> {
         config.run.queue_policy.name(),
         config.run.queue_capacity
     );
+    if config.run.wait_for_client {
+        tracing::info!("waiting for a TCP client on {}", config.run.tcp);
+        notify(&[sd_notify::NotifyState::Status("waiting for a TCP client")]);
+        while !sinks.iter().any(|s| s.stats().clients > 0) {
+            if !crate::pipeline::clock::sleep_unless(Duration::from_millis(20), &|| {
+                stop.load(std::sync::atomic::Ordering::Relaxed)
+            }) {
+                break;
+            }
+        }
+    }
     notify(&[
         sd_notify::NotifyState::Ready,
         sd_notify::NotifyState::Status(&format!("running: {what}")),

@@ -61,6 +61,9 @@ struct RunArgs {
     /// Serve DV's AEDAT 4.0 network stream on HOST:PORT.
     #[arg(long)]
     tcp: Option<String>,
+    /// Hold the source until the first TCP client has connected.
+    #[arg(long)]
+    wait_for_client: bool,
     /// Also write the events to this file (.aedat4, .raw, .csv).
     #[arg(long)]
     out: Option<String>,
@@ -300,6 +303,9 @@ fn run_config(args: &RunArgs) -> Result<Config> {
     }
     if let Some(v) = &args.out {
         run.out = v.clone();
+    }
+    if args.wait_for_client {
+        run.wait_for_client = true;
     }
     if let Some(v) = &args.queue_policy {
         run.queue_policy = v2ce::pipeline::queue::QueuePolicy::from_name(v)?;

@@ -585,3 +585,250 @@ fn sink_stage(
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame::synthetic::SceneSource;
+    use crate::sink::SinkStats;
+    use std::sync::atomic::AtomicU64;
+
+    /// Records what it gets; fails on the `fail_at`-th send when set.
+    struct Recorder {
+        got: Arc<Mutex<Vec<Event>>>,
+        sends: u64,
+        fail_at: Option<u64>,
+        stats: SinkStats,
+    }
+
+    impl Sink for Recorder {
+        fn describe(&self) -> String {
+            "recorder".into()
+        }
+        fn send(&mut self, events: &[Event]) -> Result<()> {
+            self.sends += 1;
+            if Some(self.sends) == self.fail_at {
+                return Err(Error::Run("disk full".into()));
+            }
+            self.stats.events_in += events.len() as u64;
+            self.got
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .extend_from_slice(events);
+            Ok(())
+        }
+        fn finish(&mut self) -> Result<()> {
+            Ok(())
+        }
+        fn stats(&self) -> SinkStats {
+            self.stats
+        }
+    }
+
+    fn recorder(fail_at: Option<u64>) -> (Box<dyn Sink>, Arc<Mutex<Vec<Event>>>) {
+        let got = Arc::new(Mutex::new(Vec::new()));
+        let sink = Recorder {
+            got: got.clone(),
+            sends: 0,
+            fail_at,
+            stats: SinkStats::default(),
+        };
+        (Box::new(sink), got)
+    }
+
+    fn edge(frames: usize) -> Box<dyn FrameSource> {
+        Box::new(SceneSource::moving_edge(
+            64,
+            48,
+            200.0,
+            frames,
+            2.0,
+            1500.0,
+            (0.1, 0.8),
+        ))
+    }
+
+    fn quiet(options: &Options) -> Options {
+        Options {
+            tick: Duration::from_secs(3600),
+            ..options.clone()
+        }
+    }
+
+    #[test]
+    fn a_failing_sink_does_not_stop_the_others() {
+        let (good, got) = recorder(None);
+        let (bad, _) = recorder(Some(2));
+        let stop = AtomicBool::new(false);
+        let report = run(
+            Source::file(edge(20)),
+            &Config::default(),
+            vec![bad, good],
+            &quiet(&Options::default()),
+            &stop,
+            &mut |_| {},
+        )
+        .unwrap();
+        assert_eq!(report.end, End::SourceEnded);
+        assert_eq!(report.stats.frames_in, 20);
+        let events = got.lock().unwrap().len() as u64;
+        assert!(events > 0);
+        assert_eq!(events, report.stats.events_out);
+        assert!(report.stats.sinks[0]
+            .failed
+            .as_deref()
+            .unwrap()
+            .contains("disk full"));
+        assert!(report.stats.sinks[1].failed.is_none());
+    }
+
+    #[test]
+    fn every_sink_failing_stops_the_run_with_an_error() {
+        let (bad, _) = recorder(Some(1));
+        let stop = AtomicBool::new(false);
+        let report = run(
+            Source::file(edge(400)),
+            &Config::default(),
+            vec![bad],
+            &quiet(&Options::default()),
+            &stop,
+            &mut |_| {},
+        )
+        .unwrap();
+        assert!(matches!(&report.end, End::Failed(m) if m.contains("every output failed")));
+        assert!(report.stats.frames_in < 400);
+    }
+
+    /// `left` frames, then an error (a camera unplugged); times shifted by `offset`, as a
+    /// camera's monotonic clock goes on while it is away.
+    struct Flaky {
+        inner: Box<dyn FrameSource>,
+        left: usize,
+        offset: i64,
+    }
+
+    impl FrameSource for Flaky {
+        fn size(&self) -> (u16, u16) {
+            self.inner.size()
+        }
+        fn next_frame(&mut self) -> Result<Option<Frame>> {
+            if self.left == 0 {
+                return Err(Error::Run("device went away".into()));
+            }
+            self.left -= 1;
+            let offset = self.offset;
+            Ok(self.inner.next_frame()?.map(|f| Frame {
+                t: f.t + offset,
+                ..f
+            }))
+        }
+        fn describe(&self) -> String {
+            "flaky camera".into()
+        }
+    }
+
+    #[test]
+    fn a_live_source_that_fails_is_reopened_with_backoff() {
+        let opened = Arc::new(AtomicU64::new(0));
+        let open = {
+            let opened = opened.clone();
+            move || -> Result<Box<dyn FrameSource>> {
+                let n = opened.fetch_add(1, Ordering::Relaxed);
+                // The second attempt fails too, as a camera still re-enumerating would.
+                if n == 1 {
+                    return Err(Error::Run("no such device".into()));
+                }
+                Ok(Box::new(Flaky {
+                    inner: edge(1000),
+                    left: 5,
+                    offset: n as i64 * 1_000_000,
+                }))
+            }
+        };
+        let mut reopen: Reopen = Box::new(open);
+        let first = reopen().unwrap();
+        let source = Source {
+            first,
+            reopen: Some(reopen),
+            live: true,
+            looped: false,
+            pace: None,
+            backoff: (Duration::from_millis(1), Duration::from_millis(4)),
+        };
+        let (sink, got) = recorder(None);
+        let options = Options {
+            max_frames: Some(12),
+            ..quiet(&Options::default())
+        };
+        let report = run(
+            source,
+            &Config::default(),
+            vec![sink],
+            &options,
+            &AtomicBool::new(false),
+            &mut |_| {},
+        )
+        .unwrap();
+        assert_eq!(report.end, End::MaxFrames);
+        assert_eq!(report.stats.frames_in, 12);
+        // 5 frames per opening: the first, a failed attempt, then two more openings.
+        assert_eq!(opened.load(Ordering::Relaxed), 4);
+        assert_eq!(report.stats.source_restarts, 2);
+        assert_eq!(report.stats.frames_processed, 12);
+        assert_eq!(report.stats.frames_out_of_order, 0);
+        // Stage 1 starts over on each new opening: the first frame after a gap only sets the
+        // pixels, so no event falls in the gap between 20 ms and 2 s.
+        let events = got.lock().unwrap();
+        assert!(!events.iter().any(|e| e.t > 25_000 && e.t <= 2_000_000));
+    }
+
+    #[test]
+    fn a_file_that_fails_ends_the_run_and_flushes_what_came_before() {
+        let (sink, got) = recorder(None);
+        let source = Source::file(Box::new(Flaky {
+            inner: edge(100),
+            left: 10,
+            offset: 0,
+        }));
+        let report = run(
+            source,
+            &Config::default(),
+            vec![sink],
+            &quiet(&Options::default()),
+            &AtomicBool::new(false),
+            &mut |_| {},
+        )
+        .unwrap();
+        assert!(matches!(&report.end, End::SourceFailed(m) if m.contains("device went away")));
+        assert_eq!(report.stats.frames_processed, 10);
+        assert_eq!(got.lock().unwrap().len() as u64, report.stats.events_out);
+    }
+
+    #[test]
+    fn a_looped_replay_keeps_time_increasing() {
+        let (sink, got) = recorder(None);
+        let source = Source {
+            reopen: Some(Box::new(|| Ok(edge(10)))),
+            looped: true,
+            ..Source::file(edge(10))
+        };
+        let options = Options {
+            max_frames: Some(25),
+            ..quiet(&Options::default())
+        };
+        let report = run(
+            source,
+            &Config::default(),
+            vec![sink],
+            &options,
+            &AtomicBool::new(false),
+            &mut |_| {},
+        )
+        .unwrap();
+        assert_eq!(report.stats.frames_processed, 25);
+        assert_eq!(report.stats.frames_out_of_order, 0);
+        assert_eq!(report.last_t, Some(24 * 5_000));
+        let events = got.lock().unwrap();
+        assert!(events.windows(2).all(|w| w[0].t <= w[1].t));
+    }
+}
