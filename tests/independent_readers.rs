@@ -4,52 +4,15 @@
 //! or the project's `.venv` (which `.ci/run` creates). Without one these tests print why they
 //! skip, unless `V2CE_REQUIRE_PYTHON` is set (as in CI), where a missing interpreter fails.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+use common::{script, start_receiver, temp_dir};
+
 use v2ce::event::Event;
 use v2ce::format::{self, csv, raw, Compression, Format};
-
-fn python() -> Option<PathBuf> {
-    let p = std::env::var_os("V2CE_PYTHON")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join(".venv/bin/python"));
-    if p.exists() {
-        return Some(p);
-    }
-    if std::env::var_os("V2CE_REQUIRE_PYTHON").is_some() {
-        panic!(
-            "V2CE_REQUIRE_PYTHON is set but there is no interpreter at {}",
-            p.display()
-        );
-    }
-    None
-}
-
-macro_rules! python_or_skip {
-    ($test:literal) => {
-        match python() {
-            Some(p) => p,
-            None => {
-                eprintln!(
-                    "SKIPPED {}: no Python venv with faery/aedat/dv-processing (run .ci/run or set V2CE_PYTHON)",
-                    $test
-                );
-                return;
-            }
-        }
-    };
-}
-
-fn script() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/crosscheck.py")
-}
-
-fn temp_dir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("v2ce-{name}-{}", std::process::id()));
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
 
 /// Runs `crosscheck.py file READER PATH EXPECTED [OFFSET]` and asserts an exact match.
 fn check_file(py: &Path, reader: &str, path: &Path, expected: &Path, offset: i64) {
@@ -183,28 +146,6 @@ fn our_decoders_agree_with_faery_on_every_recording() {
         check_file(&py, "faery", &path, &ours, 0);
     }
     std::fs::remove_dir_all(&dir).unwrap();
-}
-
-/// Starts `crosscheck.py ARGS` and waits for its READY line.
-fn start_receiver(py: &Path, args: &[String]) -> std::process::Child {
-    use std::io::BufRead;
-    let mut child = Command::new(py)
-        .arg(script())
-        .args(args)
-        .stdout(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    let stdout = child.stdout.take().unwrap();
-    let mut lines = std::io::BufReader::new(stdout).lines();
-    let first = lines.next().unwrap().unwrap();
-    assert_eq!(first, "READY", "receiver said {first}");
-    // Keep reading the rest in the background so the child never blocks on a full pipe.
-    std::thread::spawn(move || {
-        for line in lines.map_while(|l| l.ok()) {
-            eprintln!("receiver: {line}");
-        }
-    });
-    child
 }
 
 #[test]

@@ -135,13 +135,13 @@ impl fmt::Display for CameraInfo {
     }
 }
 
-/// True when `source` names a camera rather than a file: "/dev/video<N>", "/dev/v4l/..." paths,
-/// or a bare camera index like "0".
+/// True when `source` names a camera rather than a file: `/dev/video<N>`, `/dev/v4l/...` paths,
+/// or a bare camera index like `0`.
 pub fn is_camera(source: &str) -> bool {
     camera_index(source).is_some() || source.starts_with("/dev/v4l/")
 }
 
-/// The camera index of a bare index ("0") or a "/dev/video<N>" path.
+/// The camera index of a bare index (`0`) or a `/dev/video<N>` path.
 pub(crate) fn camera_index(source: &str) -> Option<u32> {
     let digits = source.strip_prefix("/dev/video").unwrap_or(source);
     if digits.is_empty() || !digits.bytes().all(|b| b.is_ascii_digit()) {
@@ -150,7 +150,7 @@ pub(crate) fn camera_index(source: &str) -> Option<u32> {
     digits.parse().ok()
 }
 
-/// The device path of a camera source: a bare index becomes "/dev/video<N>".
+/// The device path of a camera source: a bare index becomes `/dev/video<N>`.
 #[cfg_attr(not(all(target_os = "linux", feature = "v4l")), allow(dead_code))]
 pub(crate) fn device_path(source: &str) -> String {
     if source.bytes().all(|b| b.is_ascii_digit()) && !source.is_empty() {
@@ -179,6 +179,18 @@ pub(crate) fn check_buffers(config: &CameraConfig) -> Result<()> {
         ));
     }
     Ok(())
+}
+
+/// A negotiation error prefixed with the camera it concerns (without repeating "invalid camera").
+#[cfg_attr(
+    not(any(all(target_os = "linux", feature = "v4l"), feature = "nokhwa")),
+    allow(dead_code)
+)]
+pub(crate) fn about_camera(camera: &str, e: Error) -> Error {
+    match e {
+        Error::Invalid { what, message } => Error::invalid(what, format!("{camera}: {message}")),
+        other => other,
+    }
 }
 
 /// Lists the cameras present (empty Vec when none, e.g. no /dev/video* at all; that is not an
@@ -306,6 +318,11 @@ mod tests {
             ..CameraConfig::default()
         };
         assert!(check_buffers(&zero).is_err());
+        let e = about_camera("/dev/video0 (Cam)", Error::invalid("camera", "no formats"));
+        assert_eq!(
+            e.to_string(),
+            "invalid camera: /dev/video0 (Cam): no formats"
+        );
     }
 
     #[test]

@@ -397,6 +397,10 @@ fn summarize(offers: &[Offer]) -> String {
         .join("; ")
 }
 
+/// Size class, rate class, size closeness, rate closeness, format rank, width, height: smaller
+/// is better, compared in this order (see the [module documentation](self)).
+type RankKey = (u8, u8, i64, i64, usize, u32, u32);
+
 /// Chooses what to stream from `offers` for `config`, by the rule in the [module
 /// documentation](self). Errors when the configuration is unusable, the camera offers nothing,
 /// or none of its formats is in `config.formats` (naming what it does offer).
@@ -410,7 +414,7 @@ pub fn choose(offers: &[Offer], config: &CameraConfig) -> Result<Choice> {
     }
     let (rw, rh, fps) = (config.width, config.height, config.fps);
     let area = |w: u32, h: u32| w as i64 * h as i64;
-    let mut best: Option<((u8, u8, i64, i64, usize, u32, u32), Choice)> = None;
+    let mut best: Option<(RankKey, Choice)> = None;
     for offer in offers {
         let Some(format) = offer.format() else {
             continue;

@@ -57,7 +57,8 @@ fn err(source: &str, what: &str, e: impl std::fmt::Display) -> Error {
 
 /// nokhwa's list of formats as offers: one per format and size, with its frame rates.
 fn offers(formats: &[CameraFormat]) -> Vec<Offer> {
-    let mut out: Vec<(([u8; 4], u32, u32), Vec<f64>)> = Vec::new();
+    type Key = ([u8; 4], u32, u32);
+    let mut out: Vec<(Key, Vec<f64>)> = Vec::new();
     for f in formats {
         let key = (fourcc(f.format()), f.width(), f.height());
         let fps = f.frame_rate() as f64;
@@ -186,8 +187,8 @@ fn start(source: &str, config: &CameraConfig) -> Result<(Camera, Opened)> {
     let formats = camera
         .compatible_camera_formats()
         .map_err(|e| err(source, "cannot list formats", e))?;
-    let choice = negotiate::choose(&offers(&formats), config)
-        .map_err(|e| Error::invalid("camera", format!("{source}: {e}")))?;
+    let choice =
+        negotiate::choose(&offers(&formats), config).map_err(|e| super::about_camera(source, e))?;
     let fps = choice.fps().unwrap_or(config.fps).round().max(1.0) as u32;
     let wanted = CameraFormat::new(
         Resolution::new(choice.width, choice.height),
@@ -250,22 +251,31 @@ fn stream(source: &str, mut camera: Camera, layout: Layout, out: &Sender<Result<
             .map(|d| i64::try_from(d.as_micros()).unwrap_or(i64::MAX));
         let use_backend = *backend_times.get_or_insert(stamp.is_some());
         let t = if use_backend { stamp } else { Some(received) };
-        let message = match t {
+        let decoded = match t {
             Some(t) if last_t.is_none_or(|last| t > last) => {
-                skipped = 0;
-                last_t = Some(t);
-                pixels::decode(&layout, buffer.buffer(), t, source)
+                pixels::decode(&layout, buffer.buffer(), t, source).map_err(Some)
             }
-            _ => {
+            _ => Err(None),
+        };
+        let message = match decoded {
+            Ok(frame) => {
+                skipped = 0;
+                last_t = Some(frame.t);
+                Ok(frame)
+            }
+            // A corrupt or untimed frame is skipped, not fatal; many in a row are.
+            Err(e) => {
                 skipped += 1;
                 if skipped < MAX_SKIPPED {
                     continue;
                 }
-                Err(err(
-                    source,
-                    "capture failed",
-                    format!("{MAX_SKIPPED} frames in a row had no usable timestamp"),
-                ))
+                Err(e.unwrap_or_else(|| {
+                    err(
+                        source,
+                        "capture failed",
+                        format!("{MAX_SKIPPED} frames in a row had no usable timestamp"),
+                    )
+                }))
             }
         };
         let failed = message.is_err();

@@ -24,7 +24,8 @@ use crate::frame::{Frame, FrameSource};
 /// `V4L2_FRMIVAL_TYPE_CONTINUOUS`.
 const FRMIVAL_TYPE_CONTINUOUS: u32 = 2;
 
-/// How many unusable buffers in a row (error flag, time not advancing) before giving up.
+/// How many unusable buffers in a row (error flag, time not advancing, not decodable) before
+/// giving up.
 const MAX_SKIPPED: u32 = 64;
 
 /// The `/dev/video<N>` nodes, in index order; empty when there is no `/dev` to read.
@@ -212,7 +213,7 @@ pub(super) fn open(source: &str, config: &CameraConfig) -> Result<Box<dyn FrameS
     }
     let offers = offers(&dev, Some((config.width, config.height)));
     let choice = negotiate::choose(&offers, config)
-        .map_err(|e| Error::invalid("camera", format!("{path} ({}): {e}", caps.card)))?;
+        .map_err(|e| super::about_camera(&format!("{path} ({})", caps.card), e))?;
 
     let wanted = Format::new(
         choice.width,
@@ -276,6 +277,7 @@ impl V4l2Source {
             return Err(Error::invalid("camera", format!("{} is closed", self.path)));
         };
         let mut skipped = 0;
+        let mut last_error = None;
         loop {
             let (buf, meta) = CaptureStream::next(stream)
                 .map_err(|e| io_err(&self.path, "capture failed (camera unplugged?)", e))?;
@@ -283,23 +285,35 @@ impl V4l2Source {
                 0 => buf.len(),
                 n => n.min(buf.len()),
             };
-            let t = super::timeval_us(meta.timestamp.sec, meta.timestamp.usec);
+            // time_t is i64 on 64-bit Linux but not everywhere.
+            #[allow(clippy::useless_conversion)]
+            let t = super::timeval_us(
+                i64::from(meta.timestamp.sec),
+                i64::from(meta.timestamp.usec),
+            );
             let usable =
                 !meta.flags.contains(BufferFlags::ERROR) && self.last_t.is_none_or(|last| t > last);
             if usable {
-                let frame = pixels::decode(&self.layout, &buf[..used], t, &self.path)?;
-                self.last_t = Some(t);
-                return Ok(Some(frame));
+                // A corrupt frame (USB glitch) is skipped, not fatal; many in a row are.
+                match pixels::decode(&self.layout, &buf[..used], t, &self.path) {
+                    Ok(frame) => {
+                        self.last_t = Some(t);
+                        return Ok(Some(frame));
+                    }
+                    Err(e) => last_error = Some(e),
+                }
             }
             skipped += 1;
             if skipped >= MAX_SKIPPED {
-                return Err(Error::format(
-                    Path::new(&self.path),
-                    format!(
-                        "{MAX_SKIPPED} buffers in a row were flagged as corrupt or did not \
-                         advance in time"
-                    ),
-                ));
+                return Err(last_error.unwrap_or_else(|| {
+                    Error::format(
+                        Path::new(&self.path),
+                        format!(
+                            "{MAX_SKIPPED} buffers in a row were flagged as corrupt or did not \
+                             advance in time"
+                        ),
+                    )
+                }));
             }
         }
     }

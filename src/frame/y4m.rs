@@ -5,6 +5,8 @@
 //! `.y4m.zst` file is decompressed on the fly.
 
 use std::io::{BufReader, Read};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
 use std::path::{Path, PathBuf};
 
 use super::color::{rgb_to_luma, ycbcr_to_rgb};
@@ -19,6 +21,24 @@ pub struct Y4mSource {
     rate: (usize, usize),
     full_range: bool,
     index: i64,
+    // Bytes the decoder has taken, and how many it had at the end of the last whole frame:
+    // the decoder reports a frame cut short as a plain end of file.
+    consumed: Arc<AtomicU64>,
+    frame_end: u64,
+}
+
+/// Counts the bytes read through it.
+struct Counting {
+    inner: Box<dyn Read + Send>,
+    count: Arc<AtomicU64>,
+}
+
+impl Read for Counting {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        let n = self.inner.read(buf)?;
+        self.count.fetch_add(n as u64, Ordering::Relaxed);
+        Ok(n)
+    }
 }
 
 impl Y4mSource {
@@ -38,6 +58,11 @@ impl Y4mSource {
 
     /// Reads a Y4M stream from `reader`; `path` names it in messages.
     pub fn from_reader(reader: Box<dyn Read + Send>, path: &Path) -> Result<Self> {
+        let consumed = Arc::new(AtomicU64::new(0));
+        let reader: Box<dyn Read + Send> = Box::new(Counting {
+            inner: reader,
+            count: consumed.clone(),
+        });
         let decoder = y4m::Decoder::new(reader)
             .map_err(|e| Error::format(path, format!("not a readable Y4M file: {e:?}")))?;
         let (w, h) = (decoder.get_width(), decoder.get_height());
@@ -66,6 +91,8 @@ impl Y4mSource {
             rate: (r.num, r.den),
             full_range,
             index: 0,
+            frame_end: consumed.load(Ordering::Relaxed),
+            consumed,
         })
     }
 }
@@ -81,7 +108,15 @@ impl FrameSource for Y4mSource {
         let colorspace = self.decoder.get_colorspace();
         let frame = match self.decoder.read_frame() {
             Ok(f) => f,
-            Err(y4m::Error::EOF) => return Ok(None),
+            Err(y4m::Error::EOF) if self.consumed.load(Ordering::Relaxed) == self.frame_end => {
+                return Ok(None)
+            }
+            Err(y4m::Error::EOF) => {
+                return Err(Error::format(
+                    &self.path,
+                    format!("frame {} is cut short (the file ends inside it)", self.index),
+                ))
+            }
             Err(e) => {
                 return Err(Error::format(
                     &self.path,
@@ -89,6 +124,7 @@ impl FrameSource for Y4mSource {
                 ))
             }
         };
+        self.frame_end = self.consumed.load(Ordering::Relaxed);
         let (yp, up, vp) = (
             frame.get_y_plane(),
             frame.get_u_plane(),

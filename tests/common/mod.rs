@@ -1,0 +1,76 @@
+//! Helpers shared by the integration tests that talk to the Python readers
+//! (`tests/python/crosscheck.py`): where the interpreter is, temporary folders, receivers.
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+/// The project's Python interpreter (`V2CE_PYTHON`, else `.venv/bin/python`); `None` when
+/// absent, unless `V2CE_REQUIRE_PYTHON` is set (CI), where absence fails the test.
+pub fn python() -> Option<PathBuf> {
+    let p = std::env::var_os("V2CE_PYTHON")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join(".venv/bin/python"));
+    if p.exists() {
+        return Some(p);
+    }
+    if std::env::var_os("V2CE_REQUIRE_PYTHON").is_some() {
+        panic!(
+            "V2CE_REQUIRE_PYTHON is set but there is no interpreter at {}",
+            p.display()
+        );
+    }
+    None
+}
+
+#[macro_export]
+/// The interpreter, or a printed reason and an early return from the test.
+macro_rules! python_or_skip {
+    ($test:literal) => {
+        match $crate::common::python() {
+            Some(p) => p,
+            None => {
+                eprintln!(
+                    "SKIPPED {}: no Python venv with faery/aedat/dv-processing (run .ci/run or set V2CE_PYTHON)",
+                    $test
+                );
+                return;
+            }
+        }
+    };
+}
+
+/// The cross-check script.
+pub fn script() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/crosscheck.py")
+}
+
+/// A fresh temporary folder for one test.
+pub fn temp_dir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("v2ce-{name}-{}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// Starts `crosscheck.py ARGS` and waits for its READY line.
+pub fn start_receiver(py: &Path, args: &[String]) -> std::process::Child {
+    use std::io::BufRead;
+    let mut child = Command::new(py)
+        .arg(script())
+        .args(args)
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stdout = child.stdout.take().unwrap();
+    let mut lines = std::io::BufReader::new(stdout).lines();
+    let first = lines.next().unwrap().unwrap();
+    assert_eq!(first, "READY", "receiver said {first}");
+    // Keep reading the rest in the background so the child never blocks on a full pipe.
+    std::thread::spawn(move || {
+        for line in lines.map_while(|l| l.ok()) {
+            eprintln!("receiver: {line}");
+        }
+    });
+    child
+}
+

@@ -1,0 +1,404 @@
+//! The live daemon (`v2ce run`) end to end, driven by the bundled fixture video (and the APS
+//! frames of ../shared/data/davis346 when present): real receivers on loopback get exactly what
+//! `v2ce convert` writes for the same frames and seed; signals, stalled receivers and broken
+//! sources end or degrade the run as documented.
+
+mod common;
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc;
+use std::time::Duration;
+
+use common::{start_receiver, temp_dir};
+
+fn v2ce() -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_v2ce"));
+    c.env_remove("NOTIFY_SOCKET").env_remove("JOURNAL_STREAM");
+    c
+}
+
+fn fixture() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(v2ce::frame::fixture::PATH)
+}
+
+/// `v2ce convert INPUT -o OUT ARGS`, which must succeed.
+fn convert(input: &Path, out: &Path, args: &[&str]) {
+    let o = v2ce()
+        .arg("convert")
+        .arg(input)
+        .arg("-o")
+        .arg(out)
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
+/// A running daemon whose log lines arrive on a channel.
+struct Daemon {
+    child: Child,
+    lines: mpsc::Receiver<String>,
+    log: Vec<String>,
+}
+
+impl Daemon {
+    fn start(args: &[&str]) -> Daemon {
+        let mut child = v2ce()
+            .arg("run")
+            .args(args)
+            .args(["--json", "--stats-interval", "0.2"])
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let stderr = child.stderr.take().unwrap();
+        let (tx, lines) = mpsc::channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stderr).lines().map_while(|l| l.ok()) {
+                if tx.send(line).is_err() {
+                    break;
+                }
+            }
+        });
+        Daemon {
+            child,
+            lines,
+            log: Vec::new(),
+        }
+    }
+
+    /// Waits for a log line containing `needle` and returns it.
+    fn wait_for(&mut self, needle: &str) -> String {
+        loop {
+            let line = self
+                .lines
+                .recv_timeout(Duration::from_secs(60))
+                .unwrap_or_else(|_| panic!("no log line with {needle:?}; log: {:#?}", self.log));
+            self.log.push(line.clone());
+            if line.contains(needle) {
+                return line;
+            }
+        }
+    }
+
+    /// Waits for the exit; returns success, the JSON report and the whole log.
+    fn finish(mut self) -> (bool, serde_json::Value, Vec<String>) {
+        let mut stdout = String::new();
+        use std::io::Read;
+        self.child
+            .stdout
+            .take()
+            .unwrap()
+            .read_to_string(&mut stdout)
+            .unwrap();
+        let status = self.child.wait().unwrap();
+        while let Ok(line) = self.lines.recv_timeout(Duration::from_secs(5)) {
+            self.log.push(line);
+        }
+        let report = serde_json::from_str(stdout.trim()).unwrap_or(serde_json::Value::Null);
+        (status.success(), report, self.log)
+    }
+
+    fn signal(&self, sig: i32) {
+        // SAFETY: plain kill(2) on our own child.
+        assert_eq!(unsafe { libc::kill(self.child.id() as i32, sig) }, 0);
+    }
+}
+
+fn run_to_end(args: &[&str]) -> (bool, serde_json::Value, Vec<String>) {
+    Daemon::start(args).finish()
+}
+
+fn stat(report: &serde_json::Value, key: &str) -> u64 {
+    report["stats"][key]
+        .as_u64()
+        .unwrap_or_else(|| panic!("no stats.{key} in {report}"))
+}
+
+fn same_events(a: &Path, b: &Path) {
+    let ea = v2ce::format::read_events(a).unwrap();
+    let eb = v2ce::format::read_events(b).unwrap();
+    assert!(!ea.events.is_empty(), "no events in {}", a.display());
+    assert_eq!(ea.events.len(), eb.events.len(), "event counts differ");
+    assert!(
+        ea.events.events() == eb.events.events(),
+        "{} and {} differ",
+        a.display(),
+        b.display()
+    );
+}
+
+#[test]
+fn with_no_camera_and_no_config_it_replays_the_bundled_fixture_to_local_udp() {
+    let (ok, report, log) = run_to_end(&["--duration", "1.5"]);
+    assert!(ok, "{log:#?}");
+    let first = &log[0];
+    assert!(
+        first.contains("no camera found") && first.contains("bundled fixture"),
+        "{first}"
+    );
+    assert!(first.contains("udp 127.0.0.1:3333"), "{first}");
+    assert_eq!(report["end"], "duration");
+    // Real time: about 45 frames in 1.5 s at 30 fps.
+    let frames = stat(&report, "frames_in");
+    assert!((35..=50).contains(&frames), "{frames} frames");
+    assert!(stat(&report, "events_out") > 0);
+    assert!(log.iter().any(|l| l.contains("latency p50")), "no stats line");
+}
+
+#[test]
+fn faery_receives_over_udp_exactly_what_convert_writes() {
+    let py = python_or_skip!("faery_receives_over_udp_exactly_what_convert_writes");
+    let dir = temp_dir("daemon-udp");
+    let expected = dir.join("expected.csv");
+    let args = ["--size", "320x240", "--max-frames", "60", "--seed", "7"];
+    convert(&fixture(), &expected, &args);
+    let port = std::net::UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let mut receiver = start_receiver(
+        &py,
+        &[
+            "udp".into(),
+            "t64_x16_y16_on8".into(),
+            port.to_string(),
+            expected.display().to_string(),
+            "320".into(),
+            "240".into(),
+        ],
+    );
+    // The rate cap keeps a Python receiver on a loaded machine from losing datagrams.
+    let config = dir.join("v2ce.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[run]\nudp = \"127.0.0.1:{port}\"\nudp_format = \"t64_x16_y16_on8\"\nudp_rate = 3000\n\
+             queue_policy = \"block\"\n"
+        ),
+    )
+    .unwrap();
+    let fixture = fixture().display().to_string();
+    let (ok, report, log) = run_to_end(
+        &[
+            &["--config", config.to_str().unwrap(), "--source", &fixture],
+            &args[..],
+        ]
+        .concat(),
+    );
+    assert!(ok, "{log:#?}");
+    assert_eq!(report["end"], "max-frames");
+    assert_eq!(stat(&report, "frames_in"), 60);
+    let status = receiver.wait().unwrap();
+    assert!(status.success(), "receiver: {status}; daemon: {report}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn dv_processing_receives_over_tcp_exactly_what_convert_writes() {
+    let py = python_or_skip!("dv_processing_receives_over_tcp_exactly_what_convert_writes");
+    let dir = temp_dir("daemon-tcp");
+    let expected = dir.join("expected.csv");
+    let args = ["--size", "346x260", "--max-frames", "90", "--seed", "11"];
+    convert(&fixture(), &expected, &args);
+    let fixture = fixture().display().to_string();
+    let mut daemon = Daemon::start(
+        &[
+            &[
+                "--source",
+                &fixture,
+                "--udp",
+                "",
+                "--tcp",
+                "127.0.0.1:0",
+                "--wait-for-client",
+                "--queue-policy",
+                "block",
+            ],
+            &args[..],
+        ]
+        .concat(),
+    );
+    let first = daemon.wait_for("tcp 127.0.0.1:");
+    let port = first
+        .split("tcp 127.0.0.1:")
+        .nth(1)
+        .and_then(|s| s.split(|c: char| !c.is_ascii_digit()).next())
+        .unwrap()
+        .to_string();
+    let mut receiver = start_receiver(&py, &["tcp".into(), port, expected.display().to_string()]);
+    let status = receiver.wait().unwrap();
+    let (ok, report, log) = daemon.finish();
+    assert!(ok, "{log:#?}");
+    assert!(status.success(), "receiver: {status}; daemon: {report}");
+    assert_eq!(stat(&report, "frames_in"), 90);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn sigterm_with_the_block_policy_loses_nothing_already_queued() {
+    let dir = temp_dir("daemon-sigterm");
+    let out = dir.join("live.csv");
+    let fixture = fixture().display().to_string();
+    // Replayed 40x faster than real time, capture outruns Stage 1 and the queues fill up.
+    let mut daemon = Daemon::start(&[
+        "--source",
+        &fixture,
+        "--udp",
+        "",
+        "--out",
+        out.to_str().unwrap(),
+        "--seed",
+        "3",
+        "--replay-speed",
+        "40",
+        "--queue-policy",
+        "block",
+    ]);
+    let busy = daemon.wait_for("capture=4/4");
+    daemon.signal(libc::SIGTERM);
+    let (ok, report, log) = daemon.finish();
+    assert!(ok, "{log:#?}");
+    assert_eq!(report["end"], "stopped", "{busy}");
+    let frames = stat(&report, "frames_in");
+    assert!(frames < 180, "the signal came after the end");
+    assert_eq!(stat(&report, "frames_processed"), frames);
+    assert_eq!(stat(&report, "frames_dropped"), 0);
+    let expected = dir.join("expected.csv");
+    convert(
+        Path::new(&fixture),
+        &expected,
+        &["--seed", "3", "--max-frames", &frames.to_string()],
+    );
+    same_events(&out, &expected);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn absent_and_stalled_receivers_do_not_stop_the_frames() {
+    // A UDP port nobody listens on, a TCP client that connects and never reads, and Stage 1
+    // outrun 50x by the replay: frames keep flowing, every loss is counted.
+    let free = std::net::UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap();
+    let fixture = fixture().display().to_string();
+    let udp = free.to_string();
+    let mut daemon = Daemon::start(&[
+        "--source",
+        &fixture,
+        "--udp",
+        &udp,
+        "--tcp",
+        "127.0.0.1:0",
+        "--wait-for-client",
+        "--replay-speed",
+        "50",
+        "--queue-policy",
+        "drop-oldest",
+    ]);
+    let first = daemon.wait_for("tcp 127.0.0.1:");
+    let port: u16 = first
+        .split("tcp 127.0.0.1:")
+        .nth(1)
+        .and_then(|s| s.split(|c: char| !c.is_ascii_digit()).next())
+        .and_then(|p| p.parse().ok())
+        .unwrap();
+    let stalled = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
+    let (ok, report, log) = daemon.finish();
+    drop(stalled);
+    assert!(ok, "{log:#?}");
+    assert_eq!(report["end"], "source-ended");
+    assert_eq!(stat(&report, "frames_in"), 180);
+    let processed = stat(&report, "frames_processed");
+    let dropped = stat(&report, "frames_dropped");
+    assert_eq!(processed + dropped, 180, "{report}");
+    assert!(dropped > 0, "Stage 1 kept up with 50x real time?");
+    let sinks = report["stats"]["sinks"].as_array().unwrap();
+    let tcp = sinks
+        .iter()
+        .find(|s| s["sink"].as_str().unwrap().starts_with("tcp"))
+        .unwrap();
+    let tcp_losses = tcp["stats"]["events_dropped"].as_u64().unwrap()
+        + tcp["stats"]["clients_dropped"].as_u64().unwrap();
+    assert!(tcp_losses > 0, "the stalled client lost nothing? {tcp}");
+    assert!(sinks.iter().all(|s| s["failed"].is_null()), "{sinks:?}");
+}
+
+#[test]
+fn a_source_that_breaks_mid_stream_ends_the_run_cleanly_with_a_message() {
+    let dir = temp_dir("daemon-broken");
+    // The fixture cut in the middle of frame 20.
+    let mut y4m = Vec::new();
+    std::io::Read::read_to_end(
+        &mut zstd::stream::read::Decoder::new(std::fs::File::open(fixture()).unwrap()).unwrap(),
+        &mut y4m,
+    )
+    .unwrap();
+    let header = y4m.iter().position(|&b| b == b'\n').unwrap() + 1;
+    let frame = 6 + 640 * 480;
+    let broken = dir.join("broken.y4m");
+    std::fs::write(&broken, &y4m[..header + 20 * frame + frame / 2]).unwrap();
+    let out = dir.join("live.aedat4");
+    let (ok, report, log) = run_to_end(&[
+        "--source",
+        broken.to_str().unwrap(),
+        "--udp",
+        "",
+        "--out",
+        out.to_str().unwrap(),
+        "--replay-speed",
+        "10",
+        "--queue-policy",
+        "block",
+    ]);
+    assert!(!ok, "a broken source must fail the run");
+    assert!(
+        report["end"]["source-failed"]
+            .as_str()
+            .is_some_and(|m| m.contains("broken.y4m")),
+        "{report}"
+    );
+    let last = log.last().unwrap();
+    assert!(last.contains("error") && last.contains("the source failed"), "{last}");
+    // Everything before the break was written, and the file is complete.
+    assert_eq!(stat(&report, "frames_in"), 20);
+    let expected = dir.join("expected.aedat4");
+    convert(&fixture(), &expected, &["--max-frames", "20"]);
+    same_events(&out, &expected);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn the_aps_frames_of_a_real_recording_stream_as_converted() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/davis346/davis346.aedat4");
+    if !path.exists() {
+        eprintln!("SKIPPED: {} is absent", path.display());
+        return;
+    }
+    let dir = temp_dir("daemon-aps");
+    let expected = dir.join("expected.raw");
+    convert(&path, &expected, &["--seed", "5"]);
+    let out = dir.join("live.raw");
+    let (ok, report, log) = run_to_end(&[
+        "--source",
+        path.to_str().unwrap(),
+        "--udp",
+        "",
+        "--out",
+        out.to_str().unwrap(),
+        "--seed",
+        "5",
+        "--replay-speed",
+        "2",
+        "--queue-policy",
+        "block",
+    ]);
+    assert!(ok, "{log:#?}");
+    assert_eq!(report["end"], "source-ended");
+    same_events(&out, &expected);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
