@@ -86,32 +86,33 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut zst = zstd::stream::write::Encoder::new(file, 19)?;
     zst.long_distance_matching(true)?;
     zst.window_log(24)?;
-    let mut encoder = y4m::encode(W, H, y4m::Ratio::new(FPS, 1))
-        .with_colorspace(y4m::Colorspace::Cmono)
-        .append_vendor_extension(y4m::VendorExtensionString::new(
-            b"COLORRANGE=FULL".to_vec(),
-        )?)
-        .write_header(&mut zst)?;
     let mut plane = vec![0u8; W * H];
-    for frame in 0..FRAMES {
-        for y in 0..H {
-            for x in 0..W {
-                let mut sum = 0.0;
-                for sy in 0..4 {
-                    for sx in 0..4 {
-                        let (fx, fy) = (
-                            x as f64 + (sx as f64 + 0.5) / 4.0,
-                            y as f64 + (sy as f64 + 0.5) / 4.0,
-                        );
-                        sum += scene(frame, fx, fy);
+    {
+        let mut encoder = y4m::encode(W, H, y4m::Ratio::new(FPS, 1))
+            .with_colorspace(y4m::Colorspace::Cmono)
+            .append_vendor_extension(y4m::VendorExtensionString::new(
+                b"COLORRANGE=FULL".to_vec(),
+            )?)
+            .write_header(&mut zst)?;
+        for frame in 0..FRAMES {
+            for y in 0..H {
+                for x in 0..W {
+                    let mut sum = 0.0;
+                    for sy in 0..4 {
+                        for sx in 0..4 {
+                            let (fx, fy) = (
+                                x as f64 + (sx as f64 + 0.5) / 4.0,
+                                y as f64 + (sy as f64 + 0.5) / 4.0,
+                            );
+                            sum += scene(frame, fx, fy);
+                        }
                     }
+                    plane[y * W + x] = encode_srgb(sum / 16.0);
                 }
-                plane[y * W + x] = encode_srgb(sum / 16.0);
             }
+            encoder.write_frame(&y4m::Frame::new([&plane, &[], &[]], None))?;
         }
-        encoder.write_frame(&y4m::Frame::new([&plane, &[], &[]], None))?;
     }
-    drop(encoder);
     zst.finish()?.flush()?;
     let bytes = std::fs::metadata(&out)?.len();
     println!("{out}: {FRAMES} frames {W}x{H} at {FPS} fps, {bytes} bytes");

@@ -145,7 +145,10 @@ fn with_no_camera_and_no_config_it_replays_the_bundled_fixture_to_local_udp() {
     let frames = stat(&report, "frames_in");
     assert!((35..=50).contains(&frames), "{frames} frames");
     assert!(stat(&report, "events_out") > 0);
-    assert!(log.iter().any(|l| l.contains("latency p50")), "no stats line");
+    assert!(
+        log.iter().any(|l| l.contains("latency p50")),
+        "no stats line"
+    );
 }
 
 #[test]
@@ -363,7 +366,10 @@ fn a_source_that_breaks_mid_stream_ends_the_run_cleanly_with_a_message() {
         "{report}"
     );
     let last = log.last().unwrap();
-    assert!(last.contains("error") && last.contains("the source failed"), "{last}");
+    assert!(
+        last.contains("error") && last.contains("the source failed"),
+        "{last}"
+    );
     // Everything before the break was written, and the file is complete.
     assert_eq!(stat(&report, "frames_in"), 20);
     let expected = dir.join("expected.aedat4");
@@ -374,7 +380,8 @@ fn a_source_that_breaks_mid_stream_ends_the_run_cleanly_with_a_message() {
 
 #[test]
 fn the_aps_frames_of_a_real_recording_stream_as_converted() {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/davis346/davis346.aedat4");
+    let path =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/davis346/davis346.aedat4");
     if !path.exists() {
         eprintln!("SKIPPED: {} is absent", path.display());
         return;

@@ -5,9 +5,9 @@
 //! `.y4m.zst` file is decompressed on the fly.
 
 use std::io::{BufReader, Read};
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
-use std::path::{Path, PathBuf};
 
 use super::color::{rgb_to_luma, ycbcr_to_rgb};
 use super::{Frame, FrameSource};
@@ -114,7 +114,10 @@ impl FrameSource for Y4mSource {
             Err(y4m::Error::EOF) => {
                 return Err(Error::format(
                     &self.path,
-                    format!("frame {} is cut short (the file ends inside it)", self.index),
+                    format!(
+                        "frame {} is cut short (the file ends inside it)",
+                        self.index
+                    ),
                 ))
             }
             Err(e) => {

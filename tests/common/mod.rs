@@ -73,4 +73,3 @@ pub fn start_receiver(py: &Path, args: &[String]) -> std::process::Child {
     });
     child
 }
-
