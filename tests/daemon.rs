@@ -409,3 +409,49 @@ fn the_aps_frames_of_a_real_recording_stream_as_converted() {
     same_events(&out, &expected);
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+#[test]
+fn systemd_gets_readiness_the_stats_line_and_stopping() {
+    use std::os::unix::net::UnixDatagram;
+    let dir = temp_dir("daemon-notify");
+    let path = dir.join("notify.sock");
+    let socket = UnixDatagram::bind(&path).unwrap();
+    socket
+        .set_read_timeout(Some(Duration::from_secs(20)))
+        .unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_v2ce"))
+        .args(["run", "--duration", "1", "--stats-interval", "0.3"])
+        .env("NOTIFY_SOCKET", &path)
+        .env_remove("JOURNAL_STREAM")
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let mut messages = Vec::new();
+    let mut buf = [0u8; 4096];
+    socket
+        .set_read_timeout(Some(Duration::from_millis(500)))
+        .unwrap();
+    while let Ok(n) = socket.recv(&mut buf) {
+        messages.push(String::from_utf8_lossy(&buf[..n]).to_string());
+    }
+    let all = messages.join("\n");
+    assert!(
+        messages.first().is_some_and(|m| m.contains("READY=1")),
+        "{all}"
+    );
+    assert!(
+        messages
+            .iter()
+            .any(|m| m.contains("STATUS=frames in") && m.contains("latency p50")),
+        "{all}"
+    );
+    assert!(
+        messages.last().is_some_and(|m| m.contains("STOPPING=1")),
+        "{all}"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
