@@ -399,6 +399,7 @@ fn bench(args: BenchArgs) -> Result<()> {
         let (w, h) = source.first.size();
         let sinks = v2ce::daemon::open_sinks(&config.run, w, h)?;
         tracing::info!("bench {size}: {what}, {} s", args.seconds);
+        let cpu_before = v2ce::pipeline::stats::ProcessUsage::now().cpu_s;
         let mut rss = Vec::new();
         let mut on_tick = |s: &v2ce::pipeline::stats::Snapshot| {
             tracing::info!("{}", s.line());
@@ -414,10 +415,15 @@ fn bench(args: BenchArgs) -> Result<()> {
         // Physics tier: one frame interval of waiting for the frame that closes the interval,
         // plus Stage 1's window (one interval: it needs the previous frame).
         let budget_ms = 2.0 * 1000.0 / 30.0;
-        let rss_growth = match (rss.first(), rss.last()) {
-            (Some(a), Some(b)) => *b as i64 - *a as i64,
-            _ => 0,
-        };
+        // Memory: the resident set at each stats tick (10 s apart); the first minute against
+        // the last shows growth, the range shows the allocator's breathing.
+        let minute = rss.len().min(6);
+        let max_of = |v: &[u64]| v.iter().copied().max().unwrap_or(0);
+        let first_minute = max_of(&rss[..minute]);
+        let last_minute = max_of(&rss[rss.len() - minute..]);
+        let (rss_min, rss_max) = (rss.iter().copied().min().unwrap_or(0), max_of(&rss));
+        // This run's CPU (the process may have run another size before).
+        let cpu = 100.0 * (s.cpu_s - cpu_before) / s.uptime_s.max(1e-9);
         let result = serde_json::json!({
             "size": size,
             "seconds": s.uptime_s,
@@ -428,30 +434,29 @@ fn bench(args: BenchArgs) -> Result<()> {
             "datagrams_received": datagrams,
             "latency_ms": {"p50": l.p50_ms, "p90": l.p90_ms, "p99": l.p99_ms, "max": l.max_ms},
             "budget_ms": budget_ms,
-            "cpu_percent": 100.0 * s.cpu_s / s.uptime_s.max(1e-9),
-            "rss_first_tick_kib": rss.first(),
-            "rss_end_kib": s.rss_kib,
-            "rss_growth_kib": rss_growth,
-            "max_rss_kib": s.max_rss_kib,
+            "cpu_percent": cpu,
+            "rss_kib": {"min": rss_min, "max": rss_max, "first_minute_max": first_minute,
+                        "last_minute_max": last_minute, "peak": s.max_rss_kib},
         });
         if args.json {
             println!("{result}");
         } else {
             println!(
-                "{size}: {:.1} frames/s ({} dropped), {:.0} events/s; capture-to-send latency p50                  {:.2} ms, p90 {:.2} ms, p99 {:.2} ms, max {:.2} ms (budget {:.1} ms: {}); cpu                  {:.1}% of a core; rss {} KiB at the first tick, {} KiB at the end ({:+} KiB)",
-                fps,
+                "{size}: {fps:.1} frames/s ({} dropped), {:.0} events/s; capture-to-send latency \
+                 p50 {:.2} ms, p90 {:.2} ms, p99 {:.2} ms, max {:.2} ms (budget {budget_ms:.1} ms: \
+                 {}); cpu {cpu:.1}% of a core; rss {rss_min}..{rss_max} KiB, first minute max \
+                 {first_minute} KiB, last minute max {last_minute} KiB",
                 s.frames_dropped,
                 s.events_out as f64 / s.uptime_s.max(1e-9),
                 l.p50_ms,
                 l.p90_ms,
                 l.p99_ms,
                 l.max_ms,
-                budget_ms,
-                if l.p99_ms <= budget_ms { "met" } else { "missed" },
-                100.0 * s.cpu_s / s.uptime_s.max(1e-9),
-                rss.first().copied().unwrap_or(0),
-                s.rss_kib,
-                rss_growth
+                if l.p99_ms <= budget_ms {
+                    "met"
+                } else {
+                    "missed"
+                },
             );
         }
         if report.end == v2ce::pipeline::End::Stopped {
