@@ -1,10 +1,12 @@
 //! `v2ce run`, the live daemon, wired from the configuration: the source (a camera, a file
 //! replayed in real time, or the bundled fixture), the outputs (UDP, TCP, file), signals,
-//! systemd readiness and status, and periodic stats on the log.
+//! systemd readiness and status, and periodic stats on the log; and [`bench`], which measures it.
 
 use std::path::{Path, PathBuf};
-use std::sync::atomic::AtomicBool;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
+
+use serde::Serialize;
 use std::time::Duration;
 
 use crate::capture;
@@ -13,7 +15,8 @@ use crate::error::{Error, Result};
 use crate::format::{Compression, Format};
 use crate::frame::resize::Resized;
 use crate::frame::{self, FrameSource, SourceOptions};
-use crate::pipeline::{self, Options, Report, Source};
+use crate::pipeline::stats::{Latency, ProcessUsage, Snapshot};
+use crate::pipeline::{self, End, Options, Report, Source};
 use crate::sink::file::FileSink;
 use crate::sink::tcp::{TcpConfig, TcpSink};
 use crate::sink::udp::{UdpConfig, UdpSink};
@@ -213,7 +216,7 @@ pub fn run(config: &Config, stop: &AtomicBool) -> Result<Report> {
         notify(&[sd_notify::NotifyState::Status("waiting for a TCP client")]);
         while !sinks.iter().any(|s| s.stats().clients > 0) {
             if !crate::pipeline::clock::sleep_unless(Duration::from_millis(20), &|| {
-                stop.load(std::sync::atomic::Ordering::Relaxed)
+                stop.load(Ordering::Relaxed)
             }) {
                 break;
             }
@@ -223,7 +226,7 @@ pub fn run(config: &Config, stop: &AtomicBool) -> Result<Report> {
         sd_notify::NotifyState::Ready,
         sd_notify::NotifyState::Status(&format!("running: {what}")),
     ]);
-    let mut on_tick = |s: &pipeline::stats::Snapshot| {
+    let mut on_tick = |s: &Snapshot| {
         let line = s.line();
         tracing::info!("{line}");
         notify(&[sd_notify::NotifyState::Status(&line)]);
@@ -275,6 +278,140 @@ pub fn run(config: &Config, stop: &AtomicBool) -> Result<Report> {
         );
     }
     Ok(report)
+}
+
+/// What [`bench`] measured for one frame size.
+#[derive(Debug, Clone, Serialize)]
+pub struct BenchResult {
+    /// Frame width and height.
+    pub size: (u16, u16),
+    /// Why the run stopped (`duration`, or `stopped` by a signal).
+    pub end: End,
+    /// Seconds run.
+    pub seconds: f64,
+    /// Frames read from the source.
+    pub frames: u64,
+    /// Frames dropped (drop-oldest queues).
+    pub frames_dropped: u64,
+    /// Events sent per second.
+    pub events_per_s: f64,
+    /// Datagrams the loopback receiver got.
+    pub datagrams_received: u64,
+    /// Capture-to-send latency over the whole run.
+    pub latency: Latency,
+    /// The latency budget: one frame interval plus Stage 1's window (one interval).
+    pub budget_ms: f64,
+    /// This run's CPU time over its wall time, percent of one core.
+    pub cpu_percent: f64,
+    /// Smallest and largest resident set at the stats ticks (10 s apart) and the end, KiB.
+    pub rss_range_kib: (u64, u64),
+    /// Largest resident set in the first and in the last minute of ticks, KiB: growth shows
+    /// as the second above the first.
+    pub rss_first_last_minute_kib: (u64, u64),
+}
+
+impl BenchResult {
+    /// One line for people.
+    pub fn line(&self) -> String {
+        let l = &self.latency;
+        format!(
+            "{}x{}: {:.1} frames/s ({} dropped), {:.0} events/s; capture-to-send latency p50 \
+             {:.2} ms, p90 {:.2} ms, p99 {:.2} ms, max {:.2} ms (budget {:.1} ms: {}); cpu \
+             {:.1}% of a core; rss {}..{} KiB, first minute max {} KiB, last minute max {} KiB",
+            self.size.0,
+            self.size.1,
+            self.frames as f64 / self.seconds.max(1e-9),
+            self.frames_dropped,
+            self.events_per_s,
+            l.p50_ms,
+            l.p90_ms,
+            l.p99_ms,
+            l.max_ms,
+            self.budget_ms,
+            if l.p99_ms <= self.budget_ms {
+                "met"
+            } else {
+                "missed"
+            },
+            self.cpu_percent,
+            self.rss_range_kib.0,
+            self.rss_range_kib.1,
+            self.rss_first_last_minute_kib.0,
+            self.rss_first_last_minute_kib.1
+        )
+    }
+}
+
+/// Measures the daemon for `seconds`: the bundled fixture, resampled to `size`, replayed in
+/// real time and looped, through the default pipeline (drop-oldest queues) to a UDP receiver
+/// thread on loopback that drains the datagrams as a consumer would.
+pub fn bench(size: (u16, u16), seconds: f64, stop: &AtomicBool) -> Result<BenchResult> {
+    let udp_err = |e: std::io::Error| Error::io("udp receiver", e);
+    let socket = std::net::UdpSocket::bind("127.0.0.1:0").map_err(udp_err)?;
+    let port = socket.local_addr().map_err(udp_err)?.port();
+    socket
+        .set_read_timeout(Some(Duration::from_millis(200)))
+        .map_err(udp_err)?;
+    let done = Arc::new(AtomicBool::new(false));
+    let receiver = std::thread::spawn({
+        let done = done.clone();
+        move || {
+            let (mut buf, mut n) = (vec![0u8; 65536], 0u64);
+            while !done.load(Ordering::Relaxed) {
+                if socket.recv(&mut buf).is_ok() {
+                    n += 1;
+                }
+            }
+            n
+        }
+    });
+    let mut config = Config::default();
+    config.run.source = frame::fixture::NAME.into();
+    config.run.size = format!("{}x{}", size.0, size.1);
+    config.run.loop_source = true;
+    config.run.duration = seconds;
+    config.run.udp = format!("127.0.0.1:{port}");
+    let (source, what) = open_source(&config)?;
+    let sinks = open_sinks(&config.run, size.0, size.1)?;
+    tracing::info!("bench {}x{}: {what}, {seconds} s", size.0, size.1);
+    let cpu_before = ProcessUsage::now().cpu_s;
+    let mut rss = Vec::new();
+    let mut on_tick = |s: &Snapshot| {
+        tracing::info!("{}", s.line());
+        rss.push(s.rss_kib);
+    };
+    let report = pipeline::run(
+        source,
+        &config,
+        sinks,
+        &options(&config.run),
+        stop,
+        &mut on_tick,
+    );
+    done.store(true, Ordering::Relaxed);
+    let datagrams = receiver.join().unwrap_or(0);
+    let report = report?;
+    let s = &report.stats;
+    // The end counts as a tick too (a run shorter than one interval has no other).
+    rss.push(s.rss_kib);
+    let minute = rss.len().min(6);
+    let max_of = |v: &[u64]| v.iter().copied().max().unwrap_or(0);
+    let seconds = s.uptime_s.max(1e-9);
+    Ok(BenchResult {
+        size,
+        end: report.end.clone(),
+        seconds: s.uptime_s,
+        frames: s.frames_in,
+        frames_dropped: s.frames_dropped,
+        events_per_s: s.events_out as f64 / seconds,
+        datagrams_received: datagrams,
+        latency: s.latency_total,
+        // The fixture runs at 30 fps.
+        budget_ms: 2.0 * 1000.0 / 30.0,
+        cpu_percent: 100.0 * (s.cpu_s - cpu_before) / seconds,
+        rss_range_kib: (rss.iter().copied().min().unwrap_or(0), max_of(&rss)),
+        rss_first_last_minute_kib: (max_of(&rss[..minute]), max_of(&rss[rss.len() - minute..])),
+    })
 }
 
 #[cfg(test)]

@@ -115,15 +115,30 @@ struct TranscodeArgs {
     input: PathBuf,
     /// Output; its extension picks the format: .aedat4, .raw, .csv.
     output: PathBuf,
+    #[command(flatten)]
+    encoding: EncodingArgs,
+    /// Sensor size WIDTHxHEIGHT to write (default: the input's, or the events' extent).
+    #[arg(long, value_name = "WxH")]
+    size: Option<String>,
+}
+
+/// How an output file is encoded, beyond what its extension says.
+#[derive(Args)]
+struct EncodingArgs {
     /// EVT version of a .raw output.
     #[arg(long, value_parser = ["2", "3"], default_value = "3")]
     evt: String,
     /// Packet compression of an .aedat4 output: lz4, zstd, zstd-high or none.
     #[arg(long, default_value = "lz4")]
     compression: String,
-    /// Sensor size WIDTHxHEIGHT to write (default: the input's, or the events' extent).
-    #[arg(long, value_name = "WxH")]
-    size: Option<String>,
+}
+
+impl EncodingArgs {
+    /// The output format for `path`.
+    fn format_for(&self, path: &Path) -> Result<format::Format> {
+        let compression = format::Compression::from_name(&self.compression)?;
+        format::Format::for_output(path, self.evt.parse::<u8>().ok(), compression)
+    }
 }
 
 #[derive(Args)]
@@ -179,12 +194,8 @@ struct ConvertArgs {
     /// Image values are linear in the light (raw sensor exports), not sRGB.
     #[arg(long)]
     linear: bool,
-    /// EVT version of a .raw output.
-    #[arg(long, value_parser = ["2", "3"], default_value = "3")]
-    evt: String,
-    /// Packet compression of an .aedat4 output: lz4, zstd, zstd-high or none.
-    #[arg(long, default_value = "lz4")]
-    compression: String,
+    #[command(flatten)]
+    encoding: EncodingArgs,
     /// Resample frames to WIDTHxHEIGHT.
     #[arg(long, value_name = "WxH")]
     size: Option<String>,
@@ -364,102 +375,18 @@ fn devices() -> Result<()> {
 }
 
 fn bench(args: BenchArgs) -> Result<()> {
-    use std::sync::atomic::AtomicBool;
     init_logging();
     let stop = v2ce::daemon::stop_on_signals()?;
     for size in &args.sizes {
-        parse_size(size)?;
-        // A receiver on loopback that drains the datagrams, as a consumer would.
-        let socket = std::net::UdpSocket::bind("127.0.0.1:0").map_err(|e| Error::io("udp", e))?;
-        let port = socket.local_addr().map_err(|e| Error::io("udp", e))?.port();
-        socket
-            .set_read_timeout(Some(std::time::Duration::from_millis(200)))
-            .map_err(|e| Error::io("udp", e))?;
-        let done = std::sync::Arc::new(AtomicBool::new(false));
-        let receiver = std::thread::spawn({
-            let done = done.clone();
-            move || {
-                let (mut buf, mut n) = (vec![0u8; 65536], 0u64);
-                while !done.load(std::sync::atomic::Ordering::Relaxed) {
-                    if socket.recv(&mut buf).is_ok() {
-                        n += 1;
-                    }
-                }
-                n
-            }
-        });
-        let mut config = Config::default();
-        config.run.source = v2ce::frame::fixture::NAME.into();
-        config.run.size = size.clone();
-        config.run.loop_source = true;
-        config.run.duration = args.seconds;
-        config.run.udp = format!("127.0.0.1:{port}");
-        config.run.stats_interval = 10.0;
-        let (source, what) = v2ce::daemon::open_source(&config)?;
-        let (w, h) = source.first.size();
-        let sinks = v2ce::daemon::open_sinks(&config.run, w, h)?;
-        tracing::info!("bench {size}: {what}, {} s", args.seconds);
-        let cpu_before = v2ce::pipeline::stats::ProcessUsage::now().cpu_s;
-        let mut rss = Vec::new();
-        let mut on_tick = |s: &v2ce::pipeline::stats::Snapshot| {
-            tracing::info!("{}", s.line());
-            rss.push(s.rss_kib);
-        };
-        let options = v2ce::daemon::options(&config.run);
-        let report = v2ce::pipeline::run(source, &config, sinks, &options, &stop, &mut on_tick)?;
-        done.store(true, std::sync::atomic::Ordering::Relaxed);
-        let datagrams = receiver.join().unwrap_or(0);
-        let s = &report.stats;
-        let l = &s.latency_total;
-        let fps = s.frames_in as f64 / s.uptime_s.max(1e-9);
-        // Physics tier: one frame interval of waiting for the frame that closes the interval,
-        // plus Stage 1's window (one interval: it needs the previous frame).
-        let budget_ms = 2.0 * 1000.0 / 30.0;
-        // Memory: the resident set at each stats tick (10 s apart); the first minute against
-        // the last shows growth, the range shows the allocator's breathing.
-        let minute = rss.len().min(6);
-        let max_of = |v: &[u64]| v.iter().copied().max().unwrap_or(0);
-        let first_minute = max_of(&rss[..minute]);
-        let last_minute = max_of(&rss[rss.len() - minute..]);
-        let (rss_min, rss_max) = (rss.iter().copied().min().unwrap_or(0), max_of(&rss));
-        // This run's CPU (the process may have run another size before).
-        let cpu = 100.0 * (s.cpu_s - cpu_before) / s.uptime_s.max(1e-9);
-        let result = serde_json::json!({
-            "size": size,
-            "seconds": s.uptime_s,
-            "frames": s.frames_in,
-            "frames_per_s": fps,
-            "frames_dropped": s.frames_dropped,
-            "events_per_s": s.events_out as f64 / s.uptime_s.max(1e-9),
-            "datagrams_received": datagrams,
-            "latency_ms": {"p50": l.p50_ms, "p90": l.p90_ms, "p99": l.p99_ms, "max": l.max_ms},
-            "budget_ms": budget_ms,
-            "cpu_percent": cpu,
-            "rss_kib": {"min": rss_min, "max": rss_max, "first_minute_max": first_minute,
-                        "last_minute_max": last_minute, "peak": s.max_rss_kib},
-        });
+        let result = v2ce::daemon::bench(parse_size(size)?, args.seconds, &stop)?;
         if args.json {
-            println!("{result}");
+            let text = serde_json::to_string(&result)
+                .map_err(|e| Error::invalid("report", e.to_string()))?;
+            println!("{text}");
         } else {
-            println!(
-                "{size}: {fps:.1} frames/s ({} dropped), {:.0} events/s; capture-to-send latency \
-                 p50 {:.2} ms, p90 {:.2} ms, p99 {:.2} ms, max {:.2} ms (budget {budget_ms:.1} ms: \
-                 {}); cpu {cpu:.1}% of a core; rss {rss_min}..{rss_max} KiB, first minute max \
-                 {first_minute} KiB, last minute max {last_minute} KiB",
-                s.frames_dropped,
-                s.events_out as f64 / s.uptime_s.max(1e-9),
-                l.p50_ms,
-                l.p90_ms,
-                l.p99_ms,
-                l.max_ms,
-                if l.p99_ms <= budget_ms {
-                    "met"
-                } else {
-                    "missed"
-                },
-            );
+            println!("{}", result.line());
         }
-        if report.end == v2ce::pipeline::End::Stopped {
+        if result.end == v2ce::pipeline::End::Stopped {
             break;
         }
     }
@@ -504,9 +431,7 @@ fn convert(args: ConvertArgs) -> Result<()> {
         )?);
     }
     let (w, h) = source.size();
-    let evt = args.evt.parse::<u8>().ok();
-    let compression = format::Compression::from_name(&args.compression)?;
-    let fmt = format::Format::for_output(&args.output, evt, compression)?;
+    let fmt = args.encoding.format_for(&args.output)?;
     let sink = v2ce::sink::file::FileSink::create(&args.output, fmt, w, h)?;
     let sinks: Vec<Box<dyn v2ce::sink::Sink>> = vec![Box::new(sink)];
     eprintln!(
@@ -616,9 +541,7 @@ fn eval_stage1(args: Stage1Args) -> Result<()> {
 }
 
 fn transcode(args: TranscodeArgs) -> Result<()> {
-    let evt = args.evt.parse::<u8>().ok();
-    let compression = format::Compression::from_name(&args.compression)?;
-    let fmt = format::Format::for_output(&args.output, evt, compression)?;
+    let fmt = args.encoding.format_for(&args.output)?;
     let size = args.size.as_deref().map(parse_size).transpose()?;
     let started = std::time::Instant::now();
     let report = v2ce::transcode::transcode(&args.input, &args.output, fmt, size)?;

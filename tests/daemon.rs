@@ -44,11 +44,14 @@ struct Daemon {
 }
 
 impl Daemon {
+    /// `v2ce run ARGS --json`, with a stats line every 0.2 s unless ARGS set the interval.
     fn start(args: &[&str]) -> Daemon {
-        let mut child = v2ce()
-            .arg("run")
-            .args(args)
-            .args(["--json", "--stats-interval", "0.2"])
+        let mut command = v2ce();
+        command.arg("run").args(args).arg("--json");
+        if !args.contains(&"--stats-interval") {
+            command.args(["--stats-interval", "0.2"]);
+        }
+        let mut child = command
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
             .spawn()
@@ -141,9 +144,10 @@ fn with_no_camera_and_no_config_it_replays_the_bundled_fixture_to_local_udp() {
     );
     assert!(first.contains("udp 127.0.0.1:3333"), "{first}");
     assert_eq!(report["end"], "duration");
-    // Real time: about 45 frames in 1.5 s at 30 fps.
+    // Paced by the video's own clock: at most 1.5 s x 30 fps (+1 for the frame at t = 0) of
+    // the 180 frames, however fast the machine; fewer only if it is overloaded.
     let frames = stat(&report, "frames_in");
-    assert!((35..=50).contains(&frames), "{frames} frames");
+    assert!((1..=46).contains(&frames), "{frames} frames");
     assert!(stat(&report, "events_out") > 0);
     assert!(
         log.iter().any(|l| l.contains("latency p50")),
@@ -246,8 +250,11 @@ fn sigterm_with_the_block_policy_loses_nothing_already_queued() {
     let dir = temp_dir("daemon-sigterm");
     let out = dir.join("live.csv");
     let fixture = fixture().display().to_string();
-    // Replayed 40x faster than real time, capture outruns Stage 1 and the queues fill up.
+    // Replayed 40x faster than real time (at least 150 ms for the 180 frames), capture outruns
+    // Stage 1 and the queues fill up; a stats line every 20 ms shows it.
     let mut daemon = Daemon::start(&[
+        "--stats-interval",
+        "0.02",
         "--source",
         &fixture,
         "--udp",

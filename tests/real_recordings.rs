@@ -1,39 +1,11 @@
 //! Tests on the real recordings in `../shared/data` (not part of the repository). Each test prints
 //! why it skips when the data is absent; set `V2CE_DATA` to point elsewhere.
 
-use std::path::PathBuf;
+mod common;
 
 use v2ce::format::{self, Recording};
 use v2ce::interval::{fixed_intervals, intervals_from_frames, Interval};
 use v2ce::stage2::SamplerKind;
-
-/// The recordings folder, or the path that was looked at.
-fn data_dir() -> Result<PathBuf, PathBuf> {
-    let dir = std::env::var_os("V2CE_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data"));
-    if dir.is_dir() {
-        Ok(dir)
-    } else {
-        Err(dir)
-    }
-}
-
-macro_rules! data_or_skip {
-    ($test:literal) => {
-        match data_dir() {
-            Ok(d) => d,
-            Err(d) => {
-                eprintln!(
-                    "SKIPPED {}: no recordings at {} (set V2CE_DATA to the recordings folder)",
-                    $test,
-                    d.display()
-                );
-                return;
-            }
-        }
-    };
-}
 
 /// Time of the first frame's exposure start in the IJRR export (its README).
 const IJRR_T0: i64 = 1_589_163_147_364_965;

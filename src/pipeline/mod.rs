@@ -648,27 +648,30 @@ mod tests {
         ))
     }
 
-    fn quiet(options: &Options) -> Options {
-        Options {
+    /// Runs with the default config and no ticks.
+    fn run_quiet(source: Source, sinks: Vec<Box<dyn Sink>>, max_frames: Option<u64>) -> Report {
+        let options = Options {
             tick: Duration::from_secs(3600),
-            ..options.clone()
-        }
+            max_frames,
+            ..Options::default()
+        };
+        let stop = AtomicBool::new(false);
+        run(
+            source,
+            &Config::default(),
+            sinks,
+            &options,
+            &stop,
+            &mut |_| {},
+        )
+        .unwrap()
     }
 
     #[test]
     fn a_failing_sink_does_not_stop_the_others() {
         let (good, got) = recorder(None);
         let (bad, _) = recorder(Some(2));
-        let stop = AtomicBool::new(false);
-        let report = run(
-            Source::file(edge(20)),
-            &Config::default(),
-            vec![bad, good],
-            &quiet(&Options::default()),
-            &stop,
-            &mut |_| {},
-        )
-        .unwrap();
+        let report = run_quiet(Source::file(edge(20)), vec![bad, good], None);
         assert_eq!(report.end, End::SourceEnded);
         assert_eq!(report.stats.frames_in, 20);
         let events = got.lock().unwrap().len() as u64;
@@ -685,16 +688,7 @@ mod tests {
     #[test]
     fn every_sink_failing_stops_the_run_with_an_error() {
         let (bad, _) = recorder(Some(1));
-        let stop = AtomicBool::new(false);
-        let report = run(
-            Source::file(edge(400)),
-            &Config::default(),
-            vec![bad],
-            &quiet(&Options::default()),
-            &stop,
-            &mut |_| {},
-        )
-        .unwrap();
+        let report = run_quiet(Source::file(edge(400)), vec![bad], None);
         assert!(matches!(&report.end, End::Failed(m) if m.contains("every output failed")));
         assert!(report.stats.frames_in < 400);
     }
@@ -756,19 +750,7 @@ mod tests {
             backoff: (Duration::from_millis(1), Duration::from_millis(4)),
         };
         let (sink, got) = recorder(None);
-        let options = Options {
-            max_frames: Some(12),
-            ..quiet(&Options::default())
-        };
-        let report = run(
-            source,
-            &Config::default(),
-            vec![sink],
-            &options,
-            &AtomicBool::new(false),
-            &mut |_| {},
-        )
-        .unwrap();
+        let report = run_quiet(source, vec![sink], Some(12));
         assert_eq!(report.end, End::MaxFrames);
         assert_eq!(report.stats.frames_in, 12);
         // 5 frames per opening: the first, a failed attempt, then two more openings.
@@ -790,15 +772,7 @@ mod tests {
             left: 10,
             offset: 0,
         }));
-        let report = run(
-            source,
-            &Config::default(),
-            vec![sink],
-            &quiet(&Options::default()),
-            &AtomicBool::new(false),
-            &mut |_| {},
-        )
-        .unwrap();
+        let report = run_quiet(source, vec![sink], None);
         assert!(matches!(&report.end, End::SourceFailed(m) if m.contains("device went away")));
         assert_eq!(report.stats.frames_processed, 10);
         assert_eq!(got.lock().unwrap().len() as u64, report.stats.events_out);
@@ -812,19 +786,7 @@ mod tests {
             looped: true,
             ..Source::file(edge(10))
         };
-        let options = Options {
-            max_frames: Some(25),
-            ..quiet(&Options::default())
-        };
-        let report = run(
-            source,
-            &Config::default(),
-            vec![sink],
-            &options,
-            &AtomicBool::new(false),
-            &mut |_| {},
-        )
-        .unwrap();
+        let report = run_quiet(source, vec![sink], Some(25));
         assert_eq!(report.stats.frames_processed, 25);
         assert_eq!(report.stats.frames_out_of_order, 0);
         assert_eq!(report.last_t, Some(24 * 5_000));

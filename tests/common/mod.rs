@@ -73,3 +73,33 @@ pub fn start_receiver(py: &Path, args: &[String]) -> std::process::Child {
     });
     child
 }
+
+/// The recordings folder (`V2CE_DATA`, else ../shared/data), or the path looked at.
+pub fn data_dir() -> Result<PathBuf, PathBuf> {
+    let dir = std::env::var_os("V2CE_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data"));
+    if dir.is_dir() {
+        Ok(dir)
+    } else {
+        Err(dir)
+    }
+}
+
+/// The recordings folder, or a printed reason and an early return from the test.
+#[macro_export]
+macro_rules! data_or_skip {
+    ($test:literal) => {
+        match $crate::common::data_dir() {
+            Ok(d) => d,
+            Err(d) => {
+                eprintln!(
+                    "SKIPPED {}: no recordings at {} (set V2CE_DATA to the recordings folder)",
+                    $test,
+                    d.display()
+                );
+                return;
+            }
+        }
+    };
+}
