@@ -303,7 +303,8 @@ pub struct BenchResult {
     pub budget_ms: f64,
     /// This run's CPU time over its wall time, percent of one core.
     pub cpu_percent: f64,
-    /// Smallest and largest resident set at the stats ticks (10 s apart) and the end, KiB.
+    /// Smallest and largest resident set at the stats ticks (10 s apart; the end
+    /// when the run was shorter), KiB.
     pub rss_range_kib: (u64, u64),
     /// Largest resident set in the first and in the last minute of ticks, KiB: growth shows
     /// as the second above the first.
@@ -392,8 +393,11 @@ pub fn bench(size: (u16, u16), seconds: f64, stop: &AtomicBool) -> Result<BenchR
     let datagrams = receiver.join().unwrap_or(0);
     let report = report?;
     let s = &report.stats;
-    // The end counts as a tick too (a run shorter than one interval has no other).
-    rss.push(s.rss_kib);
+    // A run shorter than one interval has no tick: take the end (after the stages freed
+    // their buffers, so lower than while running).
+    if rss.is_empty() {
+        rss.push(s.rss_kib);
+    }
     let minute = rss.len().min(6);
     let max_of = |v: &[u64]| v.iter().copied().max().unwrap_or(0);
     let seconds = s.uptime_s.max(1e-9);
