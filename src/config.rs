@@ -205,6 +205,11 @@ impl Config {
             .validate()
             .map_err(|e| Error::format(origin, e.to_string()))?;
         config
+            .stage1
+            .learned
+            .validate()
+            .map_err(|e| Error::format(origin, e.to_string()))?;
+        config
             .run
             .validate()
             .map_err(|e| Error::format(origin, e.to_string()))?;

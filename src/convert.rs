@@ -10,12 +10,13 @@ use crate::config::Config;
 use crate::error::{Error, Result};
 use crate::frame::FrameSource;
 use crate::pipeline::queue::QueuePolicy;
-use crate::pipeline::{self, Options, Source};
+use crate::pipeline::{self, Options, Source, Stages};
 use crate::sink::Sink;
-use crate::stage1::PhysicsStats;
+use crate::stage1::{Stage1, Stage1Stats};
+use crate::stage2::SampleStats;
 
 /// What a conversion did.
-#[derive(Debug, Clone, Copy, Default, serde::Serialize)]
+#[derive(Debug, Clone, Default, serde::Serialize)]
 pub struct ConvertReport {
     /// Frames read.
     pub frames: u64,
@@ -27,16 +28,29 @@ pub struct ConvertReport {
     pub last_t: Option<i64>,
     /// Wall time, seconds.
     pub seconds: f64,
-    /// The pixel model's counters.
-    pub physics: PhysicsStats,
+    /// Stage 1's counters.
+    pub stage1: Stage1Stats,
+    /// Voxel values Stage 2 had to repair.
+    pub repaired: SampleStats,
 }
 
-/// Runs `source` through the configured stages into every sink, calling `progress` a few times
-/// a second with the report so far. The sinks are finished at the end. `stop` (e.g. set on
-/// SIGINT) ends the conversion early, with everything read so far written; `max_frames`
-/// limits the frames read.
+/// The configured Stage 1 tier for `source`'s frames.
+pub fn build_stage1(config: &Config, source: &dyn FrameSource) -> Result<Box<dyn Stage1>> {
+    crate::stage1::build(
+        &config.stage1,
+        config.stage2.bins,
+        source.size(),
+        source.encoding(),
+    )
+}
+
+/// Runs `source` through `stage1` and the configured sampler into every sink (made for
+/// `stage1.output_size()`), calling `progress` a few times a second with the report so far. The
+/// sinks are finished at the end. `stop` (e.g. set on SIGINT) ends the conversion early, with
+/// everything read so far written; `max_frames` limits the frames read.
 pub fn convert(
     source: Box<dyn FrameSource>,
+    stage1: Box<dyn Stage1>,
     config: &Config,
     sinks: Vec<Box<dyn Sink>>,
     max_frames: Option<u64>,
@@ -58,14 +72,12 @@ pub fn convert(
             ..ConvertReport::default()
         })
     };
-    let report = pipeline::run(
-        Source::file(source),
-        config,
+    let stages = Stages {
+        stage1,
+        sampler: config.stage2.sampler.build(config.stage2.seed),
         sinks,
-        &options,
-        stop,
-        &mut on_tick,
-    )?;
+    };
+    let report = pipeline::run(Source::file(source), stages, &options, stop, &mut on_tick)?;
     if !report.end.is_clean() {
         return Err(Error::Run(report.end.describe()));
     }
@@ -78,6 +90,140 @@ pub fn convert(
         first_t: report.first_t,
         last_t: report.last_t,
         seconds: report.stats.uptime_s,
-        physics: report.physics,
+        stage1: report.stage1,
+        repaired: report.repaired,
     })
+}
+
+/// A Stage 1 that also writes every voxel it hands on to a `.npy` file: float32
+/// `(intervals, 2*C, H, W)` in V2CE's channel layout (`polarity * C + node`, ON first), one
+/// interval after the other as they are made. The file is written under a temporary name and
+/// renamed when the stream is finished, with the interval count in its header, so an
+/// interrupted run never leaves a file that looks complete.
+pub struct VoxelTap {
+    inner: Box<dyn Stage1>,
+    path: std::path::PathBuf,
+    partial: std::path::PathBuf,
+    file: Option<std::io::BufWriter<std::fs::File>>,
+    shape: Option<(usize, u16, u16)>,
+    intervals: usize,
+}
+
+/// Bytes reserved for the `.npy` header, so the interval count can be filled in at the end.
+const NPY_HEADER: usize = 128;
+
+fn npy_header(intervals: usize, channels: usize, height: u16, width: u16) -> Vec<u8> {
+    let dict = format!(
+        "{{'descr': '<f4', 'fortran_order': False, 'shape': ({intervals}, {channels}, {height}, {width}), }}"
+    );
+    let mut h = b"\x93NUMPY\x01\x00".to_vec();
+    let len = NPY_HEADER - 10;
+    h.extend_from_slice(&(len as u16).to_le_bytes());
+    h.extend_from_slice(dict.as_bytes());
+    h.resize(NPY_HEADER - 1, b' ');
+    h.push(b'\n');
+    h
+}
+
+impl VoxelTap {
+    /// Wraps `inner`; the voxels go to `path`.
+    pub fn new(inner: Box<dyn Stage1>, path: &std::path::Path) -> Result<Self> {
+        let partial = path.with_extension("npy.partial");
+        let file = std::fs::File::create(&partial).map_err(|e| Error::io(&partial, e))?;
+        let mut file = std::io::BufWriter::new(file);
+        use std::io::Write;
+        file.write_all(&npy_header(0, 0, 0, 0))
+            .map_err(|e| Error::io(&partial, e))?;
+        Ok(VoxelTap {
+            inner,
+            path: path.to_path_buf(),
+            partial,
+            file: Some(file),
+            shape: None,
+            intervals: 0,
+        })
+    }
+
+    fn write(&mut self, batches: &[crate::stage1::Stage1Batch]) -> Result<()> {
+        use std::io::Write;
+        for b in batches {
+            let crate::stage1::Stage1Batch::Voxels(grid, _) = b else {
+                return Err(Error::invalid(
+                    "--write-voxels",
+                    "this Stage 1 hands over events, not voxels (use the learned tier, or the \
+                     physics tier with --mode voxels)",
+                ));
+            };
+            let shape = (2 * grid.bins(), grid.height(), grid.width());
+            if *self.shape.get_or_insert(shape) != shape {
+                return Err(Error::invalid("--write-voxels", "the voxel size changed"));
+            }
+            let Some(file) = self.file.as_mut() else {
+                return Err(Error::invalid("--write-voxels", "the file is closed"));
+            };
+            let mut bytes = Vec::new();
+            for v in grid.to_dense() {
+                bytes.extend_from_slice(&v.to_le_bytes());
+            }
+            file.write_all(&bytes)
+                .map_err(|e| Error::io(&self.partial, e))?;
+            self.intervals += 1;
+        }
+        Ok(())
+    }
+
+    fn close(&mut self) -> Result<()> {
+        use std::io::{Seek, Write};
+        let Some(file) = self.file.take() else {
+            return Ok(());
+        };
+        let mut file = file
+            .into_inner()
+            .map_err(|e| Error::io(&self.partial, e.into_error()))?;
+        let (c, h, w) = self.shape.unwrap_or((0, 0, 0));
+        file.seek(std::io::SeekFrom::Start(0))
+            .and_then(|_| file.write_all(&npy_header(self.intervals, c, h, w)))
+            .and_then(|_| file.sync_all())
+            .map_err(|e| Error::io(&self.partial, e))?;
+        std::fs::rename(&self.partial, &self.path).map_err(|e| Error::io(&self.path, e))
+    }
+}
+
+impl Stage1 for VoxelTap {
+    fn push(
+        &mut self,
+        frame: &crate::frame::Frame,
+        out: &mut Vec<crate::stage1::Stage1Batch>,
+    ) -> Result<()> {
+        let from = out.len();
+        self.inner.push(frame, out)?;
+        self.write(&out[from..])
+    }
+
+    fn finish(&mut self, out: &mut Vec<crate::stage1::Stage1Batch>) -> Result<()> {
+        let from = out.len();
+        self.inner.finish(out)?;
+        self.write(&out[from..])?;
+        self.close()
+    }
+
+    fn restart(&mut self) -> Result<()> {
+        self.inner.restart()
+    }
+
+    fn output_size(&self) -> (u16, u16) {
+        self.inner.output_size()
+    }
+
+    fn stats(&self) -> Stage1Stats {
+        self.inner.stats()
+    }
+
+    fn describe(&self) -> String {
+        format!(
+            "{}, voxels to {}",
+            self.inner.describe(),
+            self.path.display()
+        )
+    }
 }

@@ -16,7 +16,7 @@ use crate::format::{Compression, Format};
 use crate::frame::resize::Resized;
 use crate::frame::{self, FrameSource, SourceOptions};
 use crate::pipeline::stats::{Latency, ProcessUsage, Snapshot};
-use crate::pipeline::{self, End, Options, Report, Source};
+use crate::pipeline::{self, End, Options, Report, Source, Stages};
 use crate::sink::file::FileSink;
 use crate::sink::tcp::{TcpConfig, TcpSink};
 use crate::sink::udp::{UdpConfig, UdpSink};
@@ -198,16 +198,17 @@ fn notify(state: &[sd_notify::NotifyState]) {
 pub fn run(config: &Config, stop: &AtomicBool) -> Result<Report> {
     config.run.validate()?;
     let (source, what) = open_source(config)?;
-    let (w, h) = source.first.size();
+    let stage1 = crate::convert::build_stage1(config, source.first.as_ref())?;
+    let (w, h) = stage1.output_size();
     let sinks = open_sinks(&config.run, w, h)?;
     let outputs: Vec<String> = sinks.iter().map(|s| s.describe()).collect();
     tracing::info!(
-        "v2ce {}: {what} -> {} ({}x{}, preset {}, queues {} x{})",
+        "v2ce {}: {what} -> {} ({}x{}, Stage 1 {}, queues {} x{})",
         env!("CARGO_PKG_VERSION"),
         outputs.join(", "),
         w,
         h,
-        config.stage1.preset.name(),
+        stage1.describe(),
         config.run.queue_policy.name(),
         config.run.queue_capacity
     );
@@ -234,14 +235,12 @@ pub fn run(config: &Config, stop: &AtomicBool) -> Result<Report> {
             tracing::warn!("output down: {}", sink.sink);
         }
     };
-    let report = pipeline::run(
-        source,
-        config,
+    let stages = Stages {
+        stage1,
+        sampler: config.stage2.sampler.build(config.stage2.seed),
         sinks,
-        &options(&config.run),
-        stop,
-        &mut on_tick,
-    );
+    };
+    let report = pipeline::run(source, stages, &options(&config.run), stop, &mut on_tick);
     notify(&[sd_notify::NotifyState::Stopping]);
     let report = report?;
     let s = &report.stats;
@@ -373,7 +372,13 @@ pub fn bench(size: (u16, u16), seconds: f64, stop: &AtomicBool) -> Result<BenchR
     config.run.duration = seconds;
     config.run.udp = format!("127.0.0.1:{port}");
     let (source, what) = open_source(&config)?;
+    let stage1 = crate::convert::build_stage1(&config, source.first.as_ref())?;
     let sinks = open_sinks(&config.run, size.0, size.1)?;
+    let stages = Stages {
+        stage1,
+        sampler: config.stage2.sampler.build(config.stage2.seed),
+        sinks,
+    };
     tracing::info!("bench {}x{}: {what}, {seconds} s", size.0, size.1);
     let cpu_before = ProcessUsage::now().cpu_s;
     let mut rss = Vec::new();
@@ -381,14 +386,7 @@ pub fn bench(size: (u16, u16), seconds: f64, stop: &AtomicBool) -> Result<BenchR
         tracing::info!("{}", s.line());
         rss.push(s.rss_kib);
     };
-    let report = pipeline::run(
-        source,
-        &config,
-        sinks,
-        &options(&config.run),
-        stop,
-        &mut on_tick,
-    );
+    let report = pipeline::run(source, stages, &options(&config.run), stop, &mut on_tick);
     done.store(true, Ordering::Relaxed);
     let datagrams = receiver.join().unwrap_or(0);
     let report = report?;

@@ -42,6 +42,92 @@ enum Command {
     /// Measure the daemon: capture-to-send latency, CPU and memory at 346x260 and 640x480 on
     /// the replayed fixture video.
     Bench(BenchArgs),
+    /// The learned tier's network: import the official checkpoint, run a raw tensor.
+    #[command(subcommand)]
+    Model(ModelCommand),
+}
+
+#[derive(Subcommand)]
+enum ModelCommand {
+    /// Run an ONNX model on a raw tensor: IN.npy float32 (B, L, 2, H, W), already normalised,
+    /// to OUT.npy float32 (B, L, 20, H, W), the network's output after its final ReLU.
+    Run(ModelRunArgs),
+}
+
+#[derive(Args)]
+struct ModelRunArgs {
+    /// The ONNX model.
+    model: PathBuf,
+    /// Input tensor (.npy, float32, 5 dimensions).
+    #[arg(long, value_name = "IN.npy")]
+    input_npy: PathBuf,
+    /// Where to write the output tensor (.npy, float32).
+    #[arg(long, value_name = "OUT.npy")]
+    output_npy: PathBuf,
+    /// ONNX Runtime threads (0: one per core).
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+    /// Execution provider.
+    #[arg(long, value_enum, default_value_t = v2ce::stage1::learned::Device::Cpu)]
+    device: v2ce::stage1::learned::Device,
+}
+
+/// Stage 1 tier flags shared by `convert` and `run` (each overrides `[stage1]` and
+/// `[stage1.learned]`).
+#[derive(Args)]
+struct TierArgs {
+    /// Stage 1 tier: physics (the pixel model) or learned (the V2CE network; needs --model).
+    #[arg(long, value_enum)]
+    stage1: Option<v2ce::stage1::Tier>,
+    /// ONNX model of the learned tier (implies --stage1 learned).
+    #[arg(long, value_name = "M.onnx")]
+    model: Option<PathBuf>,
+    /// Frame intervals per window of the learned tier (the network was trained on 16).
+    #[arg(long)]
+    window: Option<usize>,
+    /// New intervals per window (1..=window; less overlaps windows for a shorter wait).
+    #[arg(long)]
+    stride: Option<usize>,
+    /// How frames are fitted to the network: native, resize, center, pano.
+    #[arg(long, value_enum)]
+    geometry: Option<v2ce::stage1::Geometry>,
+    /// ONNX Runtime threads (0: one per core).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Execution provider: cpu, cuda, auto.
+    #[arg(long, value_enum)]
+    device: Option<v2ce::stage1::learned::Device>,
+}
+
+impl TierArgs {
+    fn apply(&self, config: &mut Config) -> Result<()> {
+        let learned = &mut config.stage1.learned;
+        if let Some(m) = &self.model {
+            learned.model = m.clone();
+            config.stage1.tier = v2ce::stage1::Tier::Learned;
+        }
+        if let Some(t) = self.stage1 {
+            config.stage1.tier = t;
+        }
+        if let Some(v) = self.window {
+            learned.window = v;
+            // A window shorter than the stride would skip intervals: follow it down.
+            learned.stride = learned.stride.min(v);
+        }
+        if let Some(v) = self.stride {
+            learned.stride = v;
+        }
+        if let Some(v) = self.geometry {
+            learned.geometry = v;
+        }
+        if let Some(v) = self.threads {
+            learned.threads = v;
+        }
+        if let Some(v) = self.device {
+            learned.device = v;
+        }
+        learned.validate()
+    }
 }
 
 #[derive(Args)]
@@ -94,6 +180,8 @@ struct RunArgs {
     /// Print the final report as one JSON object on stdout.
     #[arg(long)]
     json: bool,
+    #[command(flatten)]
+    tier: TierArgs,
 }
 
 #[derive(Args)]
@@ -173,9 +261,12 @@ struct ConvertArgs {
     /// TOML configuration file (flags override it).
     #[arg(long)]
     config: Option<PathBuf>,
-    /// Stage 1 model (the fast tier: physics).
-    #[arg(long, value_parser = ["physics"], default_value = "physics")]
-    stage1: String,
+    #[command(flatten)]
+    tier: TierArgs,
+    /// Also write the voxels Stage 1 hands to Stage 2, as float32 (intervals, 2*C, H, W)
+    /// (channel = polarity*C + node, ON first); needs a tier that makes voxels.
+    #[arg(long, value_name = "V.npy")]
+    write_voxels: Option<PathBuf>,
     /// Sensor preset: davis346, dvxplorer, ideal.
     #[arg(long)]
     preset: Option<String>,
@@ -265,6 +356,7 @@ fn main() -> ExitCode {
         Command::Run(args) => run(args),
         Command::Devices => devices(),
         Command::Bench(args) => bench(args),
+        Command::Model(ModelCommand::Run(args)) => model_run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -343,6 +435,7 @@ fn run_config(args: &RunArgs) -> Result<Config> {
         config.stage1.seed = s;
         config.stage2.seed = s;
     }
+    args.tier.apply(&mut config)?;
     Ok(config)
 }
 
@@ -415,6 +508,7 @@ fn convert(args: ConvertArgs) -> Result<()> {
         config.stage1.seed = s;
         config.stage2.seed = s;
     }
+    args.tier.apply(&mut config)?;
     let options = v2ce::frame::SourceOptions {
         fps: args.fps,
         linear: args.linear,
@@ -430,41 +524,98 @@ fn convert(args: ConvertArgs) -> Result<()> {
             parse_size(size)?,
         )?);
     }
-    let (w, h) = source.size();
-    let fmt = args.encoding.format_for(&args.output)?;
-    let sink = v2ce::sink::file::FileSink::create(&args.output, fmt, w, h)?;
-    let sinks: Vec<Box<dyn v2ce::sink::Sink>> = vec![Box::new(sink)];
+    let mut stage1 = v2ce::convert::build_stage1(&config, source.as_ref())?;
+    let (w, h) = stage1.output_size();
     eprintln!(
-        "v2ce: {} -> {} (physics, preset {}, {} x {})",
+        "v2ce: {} -> {} (Stage 1 {}, {} x {})",
         source.describe(),
         args.output.display(),
-        config.stage1.preset.name(),
+        stage1.describe(),
         w,
         h
     );
+    if let Some(path) = &args.write_voxels {
+        stage1 = Box::new(v2ce::convert::VoxelTap::new(stage1, path)?);
+    }
+    let fmt = args.encoding.format_for(&args.output)?;
+    let sink = v2ce::sink::file::FileSink::create(&args.output, fmt, w, h)?;
+    let sinks: Vec<Box<dyn v2ce::sink::Sink>> = vec![Box::new(sink)];
     let tty = std::io::stderr().is_terminal();
     let stop = v2ce::daemon::stop_on_signals()?;
-    let report = v2ce::convert::convert(source, &config, sinks, args.max_frames, &stop, |r| {
-        if tty {
-            eprint!(
-                "\r  {} frames, {} events, {:.1} frames/s   ",
-                r.frames,
-                r.events,
-                r.frames as f64 / r.seconds.max(1e-9)
-            );
-        }
-    })?;
+    let report = v2ce::convert::convert(
+        source,
+        stage1,
+        &config,
+        sinks,
+        args.max_frames,
+        &stop,
+        |r| {
+            if tty {
+                eprint!(
+                    "\r  {} frames, {} events, {:.1} frames/s   ",
+                    r.frames,
+                    r.events,
+                    r.frames as f64 / r.seconds.max(1e-9)
+                );
+            }
+        },
+    )?;
     if tty {
         eprintln!();
     }
+    let s1 = &report.stage1;
+    let detail = match s1.tier {
+        "learned" => format!(
+            "{} windows of L={} (stride {}), median {:.0} ms per window on {}",
+            s1.learned.windows, s1.window, s1.stride, s1.learned.window_ms_p50, s1.learned.provider
+        ),
+        _ => format!(
+            "{} of {} tiles skipped as static",
+            s1.physics.tiles_skipped,
+            s1.physics.tiles_skipped + s1.physics.tiles_active
+        ),
+    };
     eprintln!(
-        "v2ce: {} frames, {} events in {:.2} s ({:.0} frames/s); {} of {} tiles skipped as static",
+        "v2ce: {} frames, {} events in {:.2} s ({:.1} frames/s); {detail}",
         report.frames,
         report.events,
         report.seconds,
         report.frames as f64 / report.seconds.max(1e-9),
-        report.physics.tiles_skipped,
-        report.physics.tiles_skipped + report.physics.tiles_active
+    );
+    if s1.learned.nonfinite > 0 || report.repaired.any() {
+        eprintln!(
+            "v2ce: warning: the model gave {} NaN/infinite values; Stage 2 repaired {} \
+             non-finite, {} negative, {} clamped node values",
+            s1.learned.nonfinite,
+            report.repaired.nonfinite,
+            report.repaired.negative,
+            report.repaired.clamped
+        );
+    }
+    Ok(())
+}
+
+fn model_run(args: ModelRunArgs) -> Result<()> {
+    let options = v2ce::stage1::learned::RuntimeOptions {
+        threads: args.threads,
+        device: args.device,
+        library: None,
+    };
+    let report = v2ce::stage1::learned::raw::run_npy(
+        &args.model,
+        &args.input_npy,
+        &args.output_npy,
+        &options,
+    )?;
+    eprintln!(
+        "v2ce: {} -> {}: output {:?} in {:.2} s on {}, max {:.6}, {} NaN/infinite",
+        args.input_npy.display(),
+        args.output_npy.display(),
+        report.shape,
+        report.seconds,
+        report.provider,
+        report.max,
+        report.nonfinite
     );
     Ok(())
 }

@@ -177,7 +177,8 @@ fn physics_tier_on_davis346_beats_the_noiseless_sensor() {
         let sink = v2ce::sink::file::FileSink::create(&out, format::Format::Csv, 346, 260).unwrap();
         let sinks: Vec<Box<dyn v2ce::sink::Sink>> = vec![Box::new(sink)];
         let stop = std::sync::atomic::AtomicBool::new(false);
-        v2ce::convert::convert(source, &config, sinks, None, &stop, |_| {}).unwrap();
+        let stage1 = v2ce::convert::build_stage1(&config, source.as_ref()).unwrap();
+        v2ce::convert::convert(source, stage1, &config, sinks, None, &stop, |_| {}).unwrap();
         let sim = format::read_events(&out).unwrap();
         std::fs::remove_file(&out).unwrap();
         v2ce::metrics::stage1::score(

@@ -94,4 +94,8 @@ impl FrameSource for ApsSource {
     fn describe(&self) -> String {
         format!("APS frames of {}", self.path.display())
     }
+
+    fn encoding(&self) -> super::SourceEncoding {
+        super::SourceEncoding::Linear
+    }
 }

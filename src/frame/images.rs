@@ -183,4 +183,12 @@ impl FrameSource for ImageFolder {
             if self.linear { " (linear)" } else { "" }
         )
     }
+
+    fn encoding(&self) -> super::SourceEncoding {
+        if self.linear {
+            super::SourceEncoding::Linear
+        } else {
+            super::SourceEncoding::Srgb
+        }
+    }
 }

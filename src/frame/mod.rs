@@ -52,6 +52,17 @@ impl Frame {
     }
 }
 
+/// How a source's pixel values related to the light before they became linear luminance.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum SourceEncoding {
+    /// Gamma-encoded video or images, decoded with the sRGB transfer function.
+    #[default]
+    Srgb,
+    /// Values already linear in the light (DAVIS APS frames, `--linear` image folders,
+    /// synthetic scenes).
+    Linear,
+}
+
 /// A source of frames in time order.
 pub trait FrameSource: Send {
     /// Frame width and height.
@@ -62,6 +73,11 @@ pub trait FrameSource: Send {
 
     /// What this source reads, for logs.
     fn describe(&self) -> String;
+
+    /// How the source's values were decoded (sRGB unless the source says otherwise).
+    fn encoding(&self) -> SourceEncoding {
+        SourceEncoding::Srgb
+    }
 }
 
 /// How to time frames whose source carries no timestamps (image folders).

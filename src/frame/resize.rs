@@ -159,6 +159,10 @@ impl FrameSource for Resized {
             ),
         }
     }
+
+    fn encoding(&self) -> super::SourceEncoding {
+        self.inner.encoding()
+    }
 }
 
 #[cfg(test)]

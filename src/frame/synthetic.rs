@@ -107,4 +107,8 @@ impl FrameSource for SceneSource {
             self.name, self.size.0, self.size.1, self.fps
         )
     }
+
+    fn encoding(&self) -> super::SourceEncoding {
+        super::SourceEncoding::Linear
+    }
 }

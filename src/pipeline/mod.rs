@@ -13,8 +13,11 @@
 //!   the instant it arrived, the start of the capture-to-send latency.
 //! - **sequencer** keeps frame times strictly increasing (a frame that does not come after the
 //!   previous one is rejected and counted).
-//! - **Stage 1** runs the pixel model ([`steps::Stage1Step`]), **Stage 2** the sampler
-//!   ([`steps::Stage2Step`]), and fans each frame's events out to one queue per sink.
+//! - **Stage 1** runs whatever tier it was given ([`Stage1`]: the pixel model, one interval per
+//!   frame, or the network, a window of intervals at a time), and at the end of the stream (or
+//!   before a reopened camera's first frame) flushes what it holds. **Stage 2** re-times voxels
+//!   with the sampler (counting every value it had to repair) and fans each interval's events
+//!   out to one queue per sink.
 //! - each **sink** thread encodes and sends. A sink that fails is reported and drained; the
 //!   others go on. When every sink has failed the pipeline stops with an error.
 //!
@@ -22,29 +25,33 @@
 //! flows downstream: the capture thread stops (stop flag, end of source, `max_frames`,
 //! `duration`, or a failure), each stage drains its input and ends when its producer has gone,
 //! and the sinks are finished last, so nothing already queued is lost.
+//!
+//! The pipeline takes built pieces ([`Stages`]: a Stage 1 tier, a sampler, the sinks), never
+//! the whole configuration, so it knows no concrete tier, sink or format. Offline conversion and
+//! the live daemon run the very same stages, so both give the same events for the same frames
+//! and seed.
 
 pub mod clock;
 pub mod queue;
 pub mod stats;
-pub mod steps;
 
+use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use serde::Serialize;
 
-use crate::config::Config;
 use crate::error::{Error, Result};
 use crate::event::Event;
 use crate::frame::resize::Resized;
 use crate::frame::{Frame, FrameSource};
 use crate::sink::Sink;
-use crate::stage1::PhysicsStats;
+use crate::stage1::{Stage1, Stage1Batch, Stage1Stats};
+use crate::stage2::{SampleStats, Sampler};
 use clock::{sleep_unless, Pacer};
 use queue::{queue, QueuePolicy, QueueRx, QueueTx, Weight};
 use stats::{Counters, Snapshot};
-use steps::{Stage1Batch, Stage1Step, Stage2Step};
 
 /// Opens the source again (a camera after a failure, a file to loop).
 pub type Reopen = Box<dyn FnMut() -> Result<Box<dyn FrameSource>> + Send>;
@@ -151,8 +158,11 @@ pub struct Report {
     pub end: End,
     /// The counters at the end (the latency covers the whole run in `latency_total`).
     pub stats: Snapshot,
-    /// The pixel model's counters.
-    pub physics: PhysicsStats,
+    /// Stage 1's counters (the tier, its window, the pixel model's or the network's counts).
+    pub stage1: Stage1Stats,
+    /// Voxel values the Stage 2 sampler had to repair (NaN, negative or huge values from a
+    /// model; always zero for the physics tier).
+    pub repaired: SampleStats,
     /// Time of the first and last frame read, us.
     pub first_t: Option<i64>,
     /// See `first_t`.
@@ -215,17 +225,31 @@ impl Ctx<'_> {
     }
 }
 
-/// Runs `source` through the stages into `sinks` until the source ends, `stop` is raised, a
+/// The built pieces the frames go through.
+pub struct Stages {
+    /// Stage 1, for frames of the source's size.
+    pub stage1: Box<dyn Stage1>,
+    /// Stage 2's sampler (used when Stage 1 hands over voxels).
+    pub sampler: Box<dyn Sampler>,
+    /// The outputs, for events of Stage 1's output size.
+    pub sinks: Vec<Box<dyn Sink>>,
+}
+
+/// Runs `source` through the stages into the sinks until the source ends, `stop` is raised, a
 /// limit is reached or something fails. `on_tick` gets a snapshot every `options.tick`.
 /// The sinks are finished before this returns.
 pub fn run(
     source: Source,
-    config: &Config,
-    sinks: Vec<Box<dyn Sink>>,
+    stages: Stages,
     options: &Options,
     stop: &AtomicBool,
     on_tick: &mut dyn FnMut(&Snapshot),
 ) -> Result<Report> {
+    let Stages {
+        stage1,
+        sampler,
+        sinks,
+    } = stages;
     if sinks.is_empty() {
         return Err(Error::invalid("sinks", "no output configured"));
     }
@@ -243,12 +267,15 @@ pub fn run(
     counters.watch_queue(s);
     let (seq_tx, seq_rx, s) = queue::<Captured>("sequenced", cap, policy);
     counters.watch_queue(s);
-    let (s1_tx, s1_rx, s) = queue::<Computed>("stage1", cap, policy);
+    // A window's intervals leave Stage 1 at once: the queues after it hold a whole window on
+    // top, so a drop-oldest policy never evicts part of a window that just arrived.
+    let burst = cap + stage1.stats().window.saturating_sub(1);
+    let (s1_tx, s1_rx, s) = queue::<Computed>("stage1", burst, policy);
     counters.watch_queue(s);
     let mut sink_txs = Vec::new();
     let mut sink_ends = Vec::new();
     for (i, sink) in sinks.into_iter().enumerate() {
-        let (tx, rx, s) = queue::<Arc<Batch>>(&format!("sink{i}"), cap, policy);
+        let (tx, rx, s) = queue::<Arc<Batch>>(&format!("sink{i}"), burst, policy);
         counters.watch_queue(s);
         let index = counters.add_sink(sink.describe());
         sink_txs.push(tx);
@@ -256,7 +283,8 @@ pub fn run(
     }
     let sink_count = sink_ends.len();
     let failed_sinks = AtomicUsize::new(0);
-    let physics = Mutex::new(PhysicsStats::default());
+    let stage1_stats = Mutex::new(stage1.stats());
+    let repaired = Mutex::new(SampleStats::default());
     let times = Mutex::new((None, None));
 
     let end = std::thread::scope(|scope| -> Result<End> {
@@ -280,15 +308,18 @@ pub fn run(
             std::thread::Builder::new()
                 .name("v2ce-stage1".into())
                 .spawn_scoped(scope, {
-                    let physics = &physics;
-                    move || stage1_stage(seq_rx, s1_tx, config, size, ctx, physics)
+                    let stats = &stage1_stats;
+                    move || stage1_stage(seq_rx, s1_tx, stage1, ctx, stats)
                 })
                 .map_err(spawn_err)?,
         );
         handles.push(
             std::thread::Builder::new()
                 .name("v2ce-stage2".into())
-                .spawn_scoped(scope, move || stage2_stage(s1_rx, sink_txs, config, ctx))
+                .spawn_scoped(scope, {
+                    let repaired = &repaired;
+                    move || stage2_stage(s1_rx, sink_txs, sampler, ctx, repaired)
+                })
                 .map_err(spawn_err)?,
         );
         for (sink, rx, index) in sink_ends {
@@ -325,11 +356,13 @@ pub fn run(
         None => end,
     };
     let (first_t, last_t) = *times.lock().unwrap_or_else(|e| e.into_inner());
-    let physics = *physics.lock().unwrap_or_else(|e| e.into_inner());
+    let stage1 = stage1_stats.into_inner().unwrap_or_else(|e| e.into_inner());
+    let repaired = repaired.into_inner().unwrap_or_else(|e| e.into_inner());
     Ok(Report {
         end,
         stats: counters.snapshot(),
-        physics,
+        stage1,
+        repaired,
         first_t,
         last_t,
     })
@@ -487,47 +520,103 @@ fn sequencer_stage(rx: QueueRx<Captured>, tx: QueueTx<Captured>, ctx: &Ctx) {
     }
 }
 
+/// Capture instants of the newest frames, to time each batch from the frame that closed it.
+const ARRIVALS_KEPT: usize = 512;
+
 fn stage1_stage(
     rx: QueueRx<Captured>,
     tx: QueueTx<Computed>,
-    config: &Config,
-    size: (u16, u16),
+    mut stage1: Box<dyn Stage1>,
     ctx: &Ctx,
-    physics: &Mutex<PhysicsStats>,
+    stats: &Mutex<Stage1Stats>,
 ) {
-    let mut step = match Stage1Step::new(config, size.0, size.1) {
-        Ok(s) => s,
-        Err(e) => return ctx.fail(format!("Stage 1: {e}")),
-    };
     let mut generation = 0;
+    let mut batches: Vec<Stage1Batch> = Vec::new();
+    let mut arrivals: VecDeque<(i64, Instant)> = VecDeque::new();
+    // Hands the batches on; false when the next stage has gone.
+    let send = |batches: &mut Vec<Stage1Batch>, arrivals: &VecDeque<(i64, Instant)>| {
+        for batch in batches.drain(..) {
+            let end = batch.end();
+            let at = arrivals
+                .iter()
+                .rev()
+                .find(|(t, _)| *t == end)
+                .map_or_else(Instant::now, |(_, at)| *at);
+            if tx.push(Computed { batch, at }).is_err() {
+                return false;
+            }
+        }
+        true
+    };
+    let publish = |stage1: &dyn Stage1| {
+        *stats.lock().unwrap_or_else(|e| e.into_inner()) = stage1.stats();
+    };
     while let Some(item) = rx.recv() {
         if item.generation != generation {
             generation = item.generation;
-            if let Err(e) = step.restart() {
+            // What the tier holds from before the break goes on; then it starts over.
+            let flushed = stage1.finish(&mut batches);
+            if !send(&mut batches, &arrivals) {
+                return;
+            }
+            if let Err(e) = flushed.and_then(|()| stage1.restart()) {
                 return ctx.fail(format!("Stage 1: {e}"));
             }
         }
-        let batch = match step.process(&item.frame) {
-            Ok(b) => b,
-            Err(e) => return ctx.fail(format!("Stage 1 at {} us: {e}", item.frame.t)),
-        };
+        arrivals.push_back((item.frame.t, item.at));
+        if arrivals.len() > ARRIVALS_KEPT {
+            arrivals.pop_front();
+        }
+        if let Err(e) = stage1.push(&item.frame, &mut batches) {
+            return ctx.fail(format!("Stage 1 at {} us: {e}", item.frame.t));
+        }
         Counters::bump(&ctx.counters.frames_processed);
-        *physics.lock().unwrap_or_else(|e| e.into_inner()) = step.stats();
-        if tx.push(Computed { batch, at: item.at }).is_err() {
+        publish(stage1.as_ref());
+        if !send(&mut batches, &arrivals) {
             return;
         }
+    }
+    // The end of the stream (or a stop): what is held still goes out.
+    let flushed = stage1.finish(&mut batches);
+    publish(stage1.as_ref());
+    if !send(&mut batches, &arrivals) {
+        return;
+    }
+    if let Err(e) = flushed {
+        ctx.fail(format!("Stage 1 at the end of the stream: {e}"));
     }
 }
 
 fn stage2_stage(
     rx: QueueRx<Computed>,
     sinks: Vec<QueueTx<Arc<Batch>>>,
-    config: &Config,
+    sampler: Box<dyn Sampler>,
     ctx: &Ctx,
+    repaired: &Mutex<SampleStats>,
 ) {
-    let step = Stage2Step::new(config);
     while let Some(item) = rx.recv() {
-        let events = step.process(item.batch);
+        let events = match item.batch {
+            Stage1Batch::Events { events, .. } => events,
+            Stage1Batch::Voxels(grid, interval) => {
+                let mut out = Vec::new();
+                let r = sampler.sample(&grid, interval, &mut out);
+                if r.any() {
+                    let mut total = repaired.lock().unwrap_or_else(|e| e.into_inner());
+                    if !total.any() {
+                        tracing::warn!(
+                            "Stage 2 repaired voxel values from Stage 1 ({} non-finite, {} \
+                             negative, {} clamped in the interval at {} us); counted in the report",
+                            r.nonfinite,
+                            r.negative,
+                            r.clamped,
+                            interval.start()
+                        );
+                    }
+                    total.add(r);
+                }
+                out
+            }
+        };
         ctx.counters
             .events_out
             .fetch_add(events.len() as u64, Ordering::Relaxed);
@@ -656,15 +745,20 @@ mod tests {
             ..Options::default()
         };
         let stop = AtomicBool::new(false);
-        run(
-            source,
-            &Config::default(),
+        let config = crate::config::Config::default();
+        let size = source.first.size();
+        let stages = Stages {
+            stage1: crate::stage1::build(
+                &config.stage1,
+                config.stage2.bins,
+                size,
+                Default::default(),
+            )
+            .unwrap(),
+            sampler: config.stage2.sampler.build(config.stage2.seed),
             sinks,
-            &options,
-            &stop,
-            &mut |_| {},
-        )
-        .unwrap()
+        };
+        run(source, stages, &options, &stop, &mut |_| {}).unwrap()
     }
 
     #[test]

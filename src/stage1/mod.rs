@@ -1,13 +1,138 @@
 //! Stage 1: frames to events (or to voxels, for Stage 2 to sample).
 //!
-//! The fast tier is [`physics`], a physical model of the DVS pixel. Its parameters come from a
-//! sensor [`Preset`] with any of them overridden in the `[stage1.physics]` config table.
+//! Every tier implements one trait, [`Stage1`]: frames go in one at a time, and zero or more
+//! [`Stage1Batch`]es (the events or the voxel of one frame interval each) come out, in interval
+//! order. The pipeline and `v2ce convert` hold a `Box<dyn Stage1>` and never a concrete tier.
+//!
+//! - [`physics`]: a physical model of the DVS pixel (window of one interval). Its parameters
+//!   come from a sensor [`Preset`] with any of them overridden in the `[stage1.physics]` table.
+//! - [`learned`]: the V2CE network (an ONNX model run by ONNX Runtime) on windows of `L`
+//!   frame intervals (`[stage1.learned]`).
+//!
+//! Adding a tier is one file implementing [`Stage1`] plus one [`Tier`] variant.
 
+pub mod learned;
 pub mod physics;
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
-pub use physics::{PhysicsConfig, PhysicsSim, PhysicsStats, Preset};
+use crate::error::Result;
+use crate::event::Event;
+use crate::frame::Frame;
+pub use crate::frame::SourceEncoding;
+use crate::interval::Interval;
+use crate::voxel::VoxelGrid;
+
+pub use learned::{Geometry, LearnedConfig, LearnedStage1, LearnedStats};
+pub use physics::{PhysicsConfig, PhysicsSim, PhysicsStage1, PhysicsStats, Preset};
+
+/// What Stage 1 hands to Stage 2 for one frame interval.
+#[derive(Debug)]
+pub enum Stage1Batch {
+    /// Events of the interval ending at `end` (the time of the frame that closed it), in time
+    /// order.
+    Events {
+        /// The events.
+        events: Vec<Event>,
+        /// The time of the frame that closed the interval, us.
+        end: i64,
+    },
+    /// The interval's events as a voxel grid, for the Stage 2 sampler to re-time.
+    Voxels(VoxelGrid, Interval),
+}
+
+impl Stage1Batch {
+    /// Events in the batch (for voxels: the grid's active cells).
+    pub fn weight(&self) -> u64 {
+        match self {
+            Stage1Batch::Events { events, .. } => events.len() as u64,
+            Stage1Batch::Voxels(g, _) => g.active_cells() as u64,
+        }
+    }
+
+    /// The time of the frame that closed this batch's interval, us.
+    pub fn end(&self) -> i64 {
+        match self {
+            Stage1Batch::Events { end, .. } => *end,
+            Stage1Batch::Voxels(_, interval) => interval.end(),
+        }
+    }
+}
+
+/// What a Stage 1 tier did, for reports.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct Stage1Stats {
+    /// The tier's name (`physics`, `learned`).
+    pub tier: &'static str,
+    /// Frame intervals per window (1 for the physics tier).
+    pub window: usize,
+    /// New intervals per window (equal to `window` when windows do not overlap).
+    pub stride: usize,
+    /// The pixel model's counters (physics tier; zero otherwise).
+    pub physics: PhysicsStats,
+    /// The network's counters (learned tier; zero otherwise).
+    pub learned: LearnedStats,
+}
+
+/// One Stage 1 tier: frames in, batches of events or voxels out.
+pub trait Stage1: Send {
+    /// Takes the next frame (times strictly increasing) and appends to `out` the batches of
+    /// every interval this frame completes: none while a window fills, one per frame for the
+    /// physics tier, a window's worth at once for the learned tier.
+    fn push(&mut self, frame: &Frame, out: &mut Vec<Stage1Batch>) -> Result<()>;
+
+    /// End of the stream: appends the batches of intervals still held (a partial window).
+    fn finish(&mut self, out: &mut Vec<Stage1Batch>) -> Result<()>;
+
+    /// Starts over after a break in the frames (a camera that came back): the next frame only
+    /// opens an interval, as the first one did. Call [`Stage1::finish`] first to keep what is
+    /// held.
+    fn restart(&mut self) -> Result<()>;
+
+    /// Width and height of the events it makes (the frames' size, unless the tier resamples).
+    fn output_size(&self) -> (u16, u16);
+
+    /// The tier's counters so far (across restarts).
+    fn stats(&self) -> Stage1Stats;
+
+    /// What this tier is, for logs (`physics (preset davis346)`, `learned (model.onnx, L=16)`).
+    fn describe(&self) -> String;
+}
+
+/// The Stage 1 tiers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, Serialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Tier {
+    /// The physical pixel model (fast, CPU, real time).
+    #[default]
+    Physics,
+    /// The V2CE network through ONNX Runtime (`[stage1.learned]`, needs a model).
+    Learned,
+}
+
+impl Tier {
+    /// The name as configs and flags spell it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Tier::Physics => "physics",
+            Tier::Learned => "learned",
+        }
+    }
+}
+
+/// Builds the configured tier for frames of `size`; `bins` is Stage 2's node count, which a
+/// voxel-emitting tier must honour; `encoding` says how the source's values were decoded.
+pub fn build(
+    config: &Stage1Config,
+    bins: usize,
+    size: (u16, u16),
+    encoding: SourceEncoding,
+) -> Result<Box<dyn Stage1>> {
+    Ok(match config.tier {
+        Tier::Physics => Box::new(PhysicsStage1::new(config, bins, size)?),
+        Tier::Learned => Box::new(LearnedStage1::new(&config.learned, bins, size, encoding)?),
+    })
+}
 
 /// How Stage 1's output reaches the event stream.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize)]
@@ -70,6 +195,8 @@ impl PhysicsOverrides {
 #[derive(Debug, Clone, Default, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Stage1Config {
+    /// The tier: `physics` or `learned`.
+    pub tier: Tier,
     /// Sensor preset.
     pub preset: Preset,
     /// Events directly, or voxels through Stage 2.
@@ -78,6 +205,8 @@ pub struct Stage1Config {
     pub seed: u64,
     /// Single-parameter overrides of the preset.
     pub physics: PhysicsOverrides,
+    /// The learned tier's model and windows.
+    pub learned: LearnedConfig,
 }
 
 impl Stage1Config {

@@ -603,3 +603,107 @@ impl PhysicsSim {
         self.stats.noise_events += (out.len() - before) as u64;
     }
 }
+
+/// The physics tier behind the [`Stage1`](super::Stage1) trait: a window of one interval.
+/// In `events` output the model's own events pass on; in `voxels` output each interval's events
+/// are voxelized for Stage 2 to re-time.
+pub struct PhysicsStage1 {
+    config: super::Stage1Config,
+    bins: usize,
+    size: (u16, u16),
+    sim: PhysicsSim,
+    voxelizer: Option<crate::voxel::Voxelizer>,
+    previous: Option<i64>,
+    scratch: Vec<Event>,
+    // Counters of the simulations before the last restart.
+    earlier: PhysicsStats,
+}
+
+impl PhysicsStage1 {
+    /// The configured preset and overrides for `size` frames; `bins` nodes per voxel.
+    pub fn new(config: &super::Stage1Config, bins: usize, size: (u16, u16)) -> Result<Self> {
+        let voxelizer = match config.output {
+            super::Stage1Output::Voxels => {
+                Some(crate::voxel::Voxelizer::new(size.0, size.1, bins)?)
+            }
+            super::Stage1Output::Events => None,
+        };
+        Ok(PhysicsStage1 {
+            sim: PhysicsSim::new(config.physics_config(), size.0, size.1, config.seed)?,
+            config: config.clone(),
+            bins,
+            size,
+            voxelizer,
+            previous: None,
+            scratch: Vec::new(),
+            earlier: PhysicsStats::default(),
+        })
+    }
+}
+
+impl super::Stage1 for PhysicsStage1 {
+    fn push(&mut self, frame: &Frame, out: &mut Vec<super::Stage1Batch>) -> Result<()> {
+        let previous = self.previous.replace(frame.t);
+        match (&mut self.voxelizer, previous) {
+            (Some(voxelizer), Some(t0)) => {
+                self.scratch.clear();
+                self.sim.step(frame, &mut self.scratch)?;
+                // Events of (t0, t1] voxelized on [t0, t1): one at t1 lands on the last node.
+                let interval = crate::interval::Interval::new(t0, frame.t)?;
+                let mut grid = crate::voxel::VoxelGrid::new(self.size.0, self.size.1, self.bins)?;
+                voxelizer.voxelize_into(&self.scratch, interval, &mut grid)?;
+                out.push(super::Stage1Batch::Voxels(grid, interval));
+            }
+            _ => {
+                let mut events = Vec::new();
+                self.sim.step(frame, &mut events)?;
+                out.push(super::Stage1Batch::Events {
+                    events,
+                    end: frame.t,
+                });
+            }
+        }
+        Ok(())
+    }
+
+    fn finish(&mut self, _out: &mut Vec<super::Stage1Batch>) -> Result<()> {
+        // Every interval is emitted when its frame arrives: nothing is held.
+        Ok(())
+    }
+
+    /// The sensor's fixed pattern (threshold mismatch, hot pixels) stays the same, since it
+    /// comes from the same seed.
+    fn restart(&mut self) -> Result<()> {
+        let mut earlier = self.stats().physics;
+        *self = PhysicsStage1::new(&self.config, self.bins, self.size)?;
+        std::mem::swap(&mut self.earlier, &mut earlier);
+        Ok(())
+    }
+
+    fn output_size(&self) -> (u16, u16) {
+        self.size
+    }
+
+    fn stats(&self) -> super::Stage1Stats {
+        let mut physics = self.earlier;
+        physics.add(self.sim.stats());
+        super::Stage1Stats {
+            tier: "physics",
+            window: 1,
+            stride: 1,
+            physics,
+            learned: Default::default(),
+        }
+    }
+
+    fn describe(&self) -> String {
+        format!(
+            "physics (preset {}, {})",
+            self.config.preset.name(),
+            match self.config.output {
+                super::Stage1Output::Events => "events",
+                super::Stage1Output::Voxels => "voxels re-timed by Stage 2",
+            }
+        )
+    }
+}

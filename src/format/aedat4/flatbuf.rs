@@ -75,7 +75,7 @@ impl<'a> Table<'a> {
             .map_err(|_| format!("table at {pos} has its vtable before the buffer"))?;
         let header = bytes_at(buf, vt_pos, 4)?;
         let vt_len = u16::from_le_bytes([header[0], header[1]]) as usize;
-        if vt_len < 4 || vt_len % 2 != 0 {
+        if vt_len < 4 || !vt_len.is_multiple_of(2) {
             return Err(format!("vtable at {vt_pos} has bad length {vt_len}"));
         }
         let vtable = bytes_at(buf, vt_pos, vt_len)?;

@@ -1,0 +1,472 @@
+//! The learned tier: the V2CE network (an ONNX model, see `v2ce model import`) run by ONNX
+//! Runtime on windows of `L` frame intervals (V2CE_SPEC.md sections 1.2, 1.3 and 3).
+//!
+//! Frames are preprocessed as the toolbox does ([`preprocess`]) and kept until a window is
+//! complete. The [`Planner`] decides when a window runs and which of its intervals are new:
+//! - with `stride = window` (the default) windows do not overlap and share one boundary frame,
+//!   and at the end of the stream the last window moves back to end on the last frame and only
+//!   its new intervals are kept: exactly the toolbox's sequence planning and merge;
+//! - with `stride < window` (live use) a window runs every `stride` new intervals over the
+//!   newest `window` intervals and keeps the newest `stride`, so an interval waits at most
+//!   `stride` intervals plus one inference, with `window` intervals of context;
+//! - a stream shorter than one window runs as one shorter window (the toolbox needs 17 frames).
+//!
+//! Each interval's output `(2*C, H, W)` becomes a [`VoxelGrid`] for Stage 2 to re-time. Values
+//! that are NaN or infinite are counted here and repaired (counted again) by the sampler.
+
+pub mod preprocess;
+pub mod raw;
+pub mod runtime;
+
+use std::collections::VecDeque;
+use std::path::PathBuf;
+use std::time::Instant;
+
+use serde::{Deserialize, Serialize};
+
+use crate::error::{Error, Result};
+use crate::frame::Frame;
+use crate::interval::Interval;
+use crate::voxel::VoxelGrid;
+
+pub use preprocess::{Geometry, Layout};
+pub use runtime::{Device, Network, RuntimeOptions};
+
+use super::{SourceEncoding, Stage1, Stage1Batch, Stage1Stats};
+
+/// The toolbox's window: 16 frame pairs.
+pub const DEFAULT_WINDOW: usize = 16;
+
+/// How a source's values reach the network.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, Serialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum InputEncoding {
+    /// As the source decoded them: sRGB files give back their bytes, linear sources (APS
+    /// frames, `--linear` folders) their values.
+    #[default]
+    Auto,
+    /// Encode with the sRGB transfer function, whatever the source.
+    Srgb,
+    /// Linear luminance as it is.
+    Linear,
+}
+
+/// The `[stage1.learned]` table.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LearnedConfig {
+    /// The ONNX model (`v2ce model import` makes one from the official checkpoint).
+    pub model: PathBuf,
+    /// Frame intervals per window (`L`; the network was trained on 16).
+    pub window: usize,
+    /// New intervals per window (`1..=window`); less than `window` overlaps windows for a
+    /// shorter wait in live use.
+    pub stride: usize,
+    /// How frames are fitted to the network.
+    pub geometry: Geometry,
+    /// Rows after resizing (`resize`, `center`, `pano`).
+    pub height: u16,
+    /// Crop or tile width (`center`, `pano`).
+    pub width: u16,
+    /// ONNX Runtime intra-op threads (0: one per core).
+    pub threads: usize,
+    /// Execution provider: `cpu`, `cuda`, `auto`.
+    pub device: Device,
+    /// How frame values reach the network.
+    pub input: InputEncoding,
+    /// The ONNX Runtime library, when it is not found by itself (empty: search).
+    pub ort_library: PathBuf,
+}
+
+impl Default for LearnedConfig {
+    fn default() -> Self {
+        LearnedConfig {
+            model: PathBuf::new(),
+            window: DEFAULT_WINDOW,
+            stride: DEFAULT_WINDOW,
+            geometry: Geometry::Native,
+            height: 260,
+            width: 346,
+            threads: 0,
+            device: Device::Cpu,
+            input: InputEncoding::Auto,
+            ort_library: PathBuf::new(),
+        }
+    }
+}
+
+impl LearnedConfig {
+    /// Checks the window settings.
+    pub fn validate(&self) -> Result<()> {
+        if !(1..=256).contains(&self.window) {
+            return Err(Error::invalid(
+                "stage1.learned.window",
+                format!("{} intervals; need 1 to 256", self.window),
+            ));
+        }
+        if !(1..=self.window).contains(&self.stride) {
+            return Err(Error::invalid(
+                "stage1.learned.stride",
+                format!("{}; need 1 to the window ({})", self.stride, self.window),
+            ));
+        }
+        Ok(())
+    }
+
+    /// The runtime options of this table.
+    pub fn runtime(&self) -> RuntimeOptions {
+        RuntimeOptions {
+            threads: self.threads,
+            device: self.device,
+            library: (!self.ort_library.as_os_str().is_empty()).then(|| self.ort_library.clone()),
+        }
+    }
+}
+
+/// The learned tier's counters.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct LearnedStats {
+    /// Windows run (a panorama's tiles count once).
+    pub windows: u64,
+    /// Frame pairs fed to the network (overlapping windows feed some twice).
+    pub pairs_run: u64,
+    /// Intervals handed to Stage 2.
+    pub intervals: u64,
+    /// Output values that were NaN or infinite.
+    pub nonfinite: u64,
+    /// Median time of one window's inference, ms.
+    pub window_ms_p50: f64,
+    /// Longest, ms.
+    pub window_ms_max: f64,
+    /// The execution provider (`cpu`, `cuda`).
+    pub provider: &'static str,
+}
+
+/// When windows run, for a stream of frames (pure bookkeeping; see the module docs).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Planner {
+    window: usize,
+    stride: usize,
+    /// Frames held (at most `window + 1`).
+    held: usize,
+    /// Intervals not handed on yet.
+    pending: usize,
+}
+
+/// A window to run: the newest `frames` held frames, of whose `frames - 1` intervals the last
+/// `keep` are new.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Run {
+    /// Frames in the window (pairs + 1).
+    pub frames: usize,
+    /// New intervals, the window's last ones.
+    pub keep: usize,
+}
+
+impl Planner {
+    /// A planner for windows of `window` intervals advancing by `stride`.
+    pub fn new(window: usize, stride: usize) -> Self {
+        Planner {
+            window,
+            stride,
+            held: 0,
+            pending: 0,
+        }
+    }
+
+    /// Frames the caller must keep (the newest ones).
+    pub fn capacity(&self) -> usize {
+        self.window + 1
+    }
+
+    /// A frame arrived; returns the window to run now, if any.
+    pub fn push(&mut self) -> Option<Run> {
+        if self.held > 0 {
+            self.pending += 1;
+        }
+        self.held = (self.held + 1).min(self.window + 1);
+        if self.held == self.window + 1 && self.pending >= self.stride {
+            let keep = std::mem::take(&mut self.pending);
+            return Some(Run {
+                frames: self.held,
+                keep,
+            });
+        }
+        None
+    }
+
+    /// End of the stream: the window that hands on what is pending, if anything is.
+    pub fn finish(&mut self) -> Option<Run> {
+        let keep = std::mem::take(&mut self.pending);
+        (keep > 0).then_some(Run {
+            frames: self.held,
+            keep,
+        })
+    }
+
+    /// Forgets every frame (after a break in the stream).
+    pub fn restart(&mut self) {
+        self.held = 0;
+        self.pending = 0;
+    }
+}
+
+/// The learned tier behind the [`Stage1`] trait.
+pub struct LearnedStage1 {
+    network: Network,
+    layout: Layout,
+    encoding: SourceEncoding,
+    bins: usize,
+    planner: Planner,
+    config: LearnedConfig,
+    /// The newest frames: time and resized plane in `[0, 1]`.
+    frames: VecDeque<(i64, Vec<f32>)>,
+    stats: LearnedStats,
+    window_ms: Vec<f64>,
+    input: Vec<f32>,
+    tile: Vec<f32>,
+}
+
+impl LearnedStage1 {
+    /// Opens the model for frames of `size`; `bins` must match the model's `C`.
+    pub fn new(
+        config: &LearnedConfig,
+        bins: usize,
+        size: (u16, u16),
+        encoding: SourceEncoding,
+    ) -> Result<Self> {
+        config.validate()?;
+        if config.model.as_os_str().is_empty() {
+            return Err(Error::invalid(
+                "stage1.learned.model",
+                "the learned tier needs an ONNX model (--model M.onnx; `v2ce model import \
+                 v2ce_3d.pt -o M.onnx` makes one from the official weights)",
+            ));
+        }
+        let layout = Layout::new(config.geometry, size, config.height, config.width)?;
+        let network = Network::open(&config.model, &config.runtime())?;
+        if let Some(c) = network.channels() {
+            if c != 2 * bins {
+                return Err(Error::invalid(
+                    "stage2.bins",
+                    format!(
+                        "the model gives {c} channels per interval (C = {}), Stage 2 expects \
+                         C = {bins}; set [stage2] bins = {}",
+                        c / 2,
+                        c / 2
+                    ),
+                ));
+            }
+        }
+        let encoding = match config.input {
+            InputEncoding::Auto => encoding,
+            InputEncoding::Srgb => SourceEncoding::Srgb,
+            InputEncoding::Linear => SourceEncoding::Linear,
+        };
+        Ok(LearnedStage1 {
+            stats: LearnedStats {
+                provider: network.provider(),
+                ..LearnedStats::default()
+            },
+            network,
+            layout,
+            encoding,
+            bins,
+            planner: Planner::new(config.window, config.stride),
+            config: config.clone(),
+            frames: VecDeque::new(),
+            window_ms: Vec::new(),
+            input: Vec::new(),
+            tile: Vec::new(),
+        })
+    }
+
+    /// Runs the newest `run.frames` frames and appends the `run.keep` new intervals.
+    fn run(&mut self, run: Run, out: &mut Vec<Stage1Batch>) -> Result<()> {
+        let frames: Vec<&(i64, Vec<f32>)> = self
+            .frames
+            .iter()
+            .skip(self.frames.len() - run.frames)
+            .collect();
+        let pairs = run.frames - 1;
+        let (nw, nh) = self.layout.net();
+        let (ow, oh) = self.layout.output();
+        let (ow, oh) = (ow as usize, oh as usize);
+        let channels = 2 * self.bins;
+        let mut voxels = vec![0f32; run.keep * channels * oh * ow];
+        let started = Instant::now();
+        for (x0, keep_from) in self.layout.tiles() {
+            self.input.clear();
+            for pair in frames.windows(2) {
+                for (_, plane) in pair {
+                    self.layout.tile(plane, x0, &mut self.tile);
+                    self.input.extend_from_slice(&self.tile);
+                }
+            }
+            let (shape, values) = self.network.run(&self.input, [1, pairs, 2, nh, nw])?;
+            if shape[2] != channels {
+                return Err(Error::format(
+                    self.network.path(),
+                    format!("{} channels per interval, expected {channels}", shape[2]),
+                ));
+            }
+            // Copy the kept intervals' columns keep_from.. of this tile to x0 + keep_from...
+            let plane = nh * nw;
+            for k in 0..run.keep {
+                let j = pairs - run.keep + k;
+                for c in 0..channels {
+                    let src = &values[(j * channels + c) * plane..(j * channels + c + 1) * plane];
+                    let dst =
+                        &mut voxels[(k * channels + c) * oh * ow..(k * channels + c + 1) * oh * ow];
+                    for y in 0..nh {
+                        let from = &src[y * nw + keep_from..(y + 1) * nw];
+                        let at = y * ow + x0 + keep_from;
+                        dst[at..at + from.len()].copy_from_slice(from);
+                    }
+                }
+            }
+            self.stats.pairs_run += pairs as u64;
+        }
+        let ms = started.elapsed().as_secs_f64() * 1e3;
+        self.window_ms.push(ms);
+        self.stats.windows += 1;
+        self.stats.nonfinite += voxels.iter().filter(|v| !v.is_finite()).count() as u64;
+        let size = channels * oh * ow;
+        for k in 0..run.keep {
+            let j = pairs - run.keep + k;
+            let interval = Interval::new(frames[j].0, frames[j + 1].0)?;
+            let grid = VoxelGrid::from_dense(
+                ow as u16,
+                oh as u16,
+                self.bins,
+                &voxels[k * size..(k + 1) * size],
+            )?;
+            out.push(Stage1Batch::Voxels(grid, interval));
+            self.stats.intervals += 1;
+        }
+        Ok(())
+    }
+}
+
+impl Stage1 for LearnedStage1 {
+    fn push(&mut self, frame: &Frame, out: &mut Vec<Stage1Batch>) -> Result<()> {
+        let plane = self.layout.plane(frame, self.encoding)?;
+        self.frames.push_back((frame.t, plane));
+        while self.frames.len() > self.planner.capacity() {
+            self.frames.pop_front();
+        }
+        match self.planner.push() {
+            Some(run) => self.run(run, out),
+            None => Ok(()),
+        }
+    }
+
+    fn finish(&mut self, out: &mut Vec<Stage1Batch>) -> Result<()> {
+        match self.planner.finish() {
+            Some(run) => self.run(run, out),
+            None => Ok(()),
+        }
+    }
+
+    fn restart(&mut self) -> Result<()> {
+        self.planner.restart();
+        self.frames.clear();
+        Ok(())
+    }
+
+    fn output_size(&self) -> (u16, u16) {
+        self.layout.output()
+    }
+
+    fn stats(&self) -> Stage1Stats {
+        let mut learned = self.stats.clone();
+        let mut ms = self.window_ms.clone();
+        ms.sort_by(f64::total_cmp);
+        learned.window_ms_p50 = ms.get(ms.len() / 2).copied().unwrap_or(0.0);
+        learned.window_ms_max = ms.last().copied().unwrap_or(0.0);
+        Stage1Stats {
+            tier: "learned",
+            window: self.config.window,
+            stride: self.config.stride,
+            physics: Default::default(),
+            learned,
+        }
+    }
+
+    fn describe(&self) -> String {
+        format!(
+            "learned ({}, L={} stride {}, {:?} geometry, {})",
+            self.config.model.display(),
+            self.config.window,
+            self.config.stride,
+            self.config.geometry,
+            self.network.provider()
+        )
+        .to_lowercase()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Start frames and kept intervals of every window for `n` frames.
+    fn plan(n: usize, window: usize, stride: usize) -> Vec<(usize, usize)> {
+        let mut p = Planner::new(window, stride);
+        let mut runs = Vec::new();
+        for i in 0..n {
+            if let Some(r) = p.push() {
+                runs.push((i + 1 - r.frames, r.keep));
+            }
+        }
+        if let Some(r) = p.finish() {
+            runs.push((n - r.frames, r.keep));
+        }
+        runs
+    }
+
+    #[test]
+    fn the_toolbox_plan() {
+        // Spec 1.3 / Appendix B.6: N = 100 -> starts 0, 16, .., 80, 83; the last keeps 3.
+        let runs = plan(100, 16, 16);
+        let starts: Vec<usize> = runs.iter().map(|r| r.0).collect();
+        assert_eq!(starts, vec![0, 16, 32, 48, 64, 80, 83]);
+        assert_eq!(runs.last(), Some(&(83, 3)));
+        assert_eq!(runs.iter().map(|r| r.1).sum::<usize>(), 99);
+        // 59 frames (the davis346 clip): 4 windows, the last moved back to 42, keeping 10.
+        assert_eq!(
+            plan(59, 16, 16),
+            vec![(0, 16), (16, 16), (32, 16), (42, 10)]
+        );
+        // 17 frames: one window; 33: two, nothing left over.
+        assert_eq!(plan(17, 16, 16), vec![(0, 16)]);
+        assert_eq!(plan(33, 16, 16), vec![(0, 16), (16, 16)]);
+    }
+
+    #[test]
+    fn short_streams_and_overlap() {
+        // Fewer than 17 frames: one shorter window over all of them; one frame: nothing.
+        assert_eq!(plan(5, 16, 16), vec![(0, 4)]);
+        assert!(plan(1, 16, 16).is_empty());
+        // Live overlap: L = 8, stride 2: the first window keeps all 8, then every 2 frames.
+        let runs = plan(14, 8, 2);
+        assert_eq!(runs[0], (0, 8));
+        assert_eq!(
+            runs[1..].iter().map(|r| r.1).collect::<Vec<_>>(),
+            vec![2, 2, 1]
+        );
+        assert_eq!(runs.iter().map(|r| r.1).sum::<usize>(), 13);
+        // Every interval handed on exactly once, in order, for many settings.
+        for (n, l, s) in [(50, 16, 16), (50, 16, 5), (3, 4, 1), (40, 1, 1), (23, 7, 3)] {
+            let runs = plan(n, l, s);
+            let mut next = 0;
+            for (start, keep) in runs {
+                let frames = (start..n).len().min(l + 1);
+                let first_new = start + frames - 1 - keep;
+                assert_eq!(first_new, next, "n {n} l {l} s {s}");
+                next += keep;
+            }
+            assert_eq!(next, n - 1);
+        }
+    }
+}
