@@ -298,8 +298,11 @@ pub struct BenchResult {
     pub datagrams_received: u64,
     /// Capture-to-send latency over the whole run.
     pub latency: Latency,
-    /// The latency budget: one frame interval plus Stage 1's window (one interval).
+    /// The latency budget: one frame interval plus Stage 1's wait for its window (the stride:
+    /// one interval for the physics tier), at the replay speed.
     pub budget_ms: f64,
+    /// Stage 1 as it ran (tier, window, stride, the network's time per window).
+    pub stage1: crate::stage1::Stage1Stats,
     /// This run's CPU time over its wall time, percent of one core.
     pub cpu_percent: f64,
     /// Smallest and largest resident set at the stats ticks (10 s apart; the end
@@ -315,11 +318,14 @@ impl BenchResult {
     pub fn line(&self) -> String {
         let l = &self.latency;
         format!(
-            "{}x{}: {:.1} frames/s ({} dropped), {:.0} events/s; capture-to-send latency p50 \
+            "{}x{} {} L={} stride {}: {:.1} frames/s ({} dropped), {:.0} events/s; capture-to-send latency p50 \
              {:.2} ms, p90 {:.2} ms, p99 {:.2} ms, max {:.2} ms (budget {:.1} ms: {}); cpu \
              {:.1}% of a core; rss {}..{} KiB, first minute max {} KiB, last minute max {} KiB",
             self.size.0,
             self.size.1,
+            self.stage1.tier,
+            self.stage1.window,
+            self.stage1.stride,
             self.frames as f64 / self.seconds.max(1e-9),
             self.frames_dropped,
             self.events_per_s,
@@ -342,10 +348,17 @@ impl BenchResult {
     }
 }
 
-/// Measures the daemon for `seconds`: the bundled fixture, resampled to `size`, replayed in
-/// real time and looped, through the default pipeline (drop-oldest queues) to a UDP receiver
-/// thread on loopback that drains the datagrams as a consumer would.
-pub fn bench(size: (u16, u16), seconds: f64, stop: &AtomicBool) -> Result<BenchResult> {
+/// Measures the daemon for `seconds`: the bundled fixture, resampled to `size`, replayed at
+/// `speed` times real time and looped, through the pipeline with `base`'s Stage 1 and Stage 2
+/// (drop-oldest queues) to a UDP receiver thread on loopback that drains the datagrams as a
+/// consumer would.
+pub fn bench(
+    size: (u16, u16),
+    seconds: f64,
+    speed: f64,
+    base: &Config,
+    stop: &AtomicBool,
+) -> Result<BenchResult> {
     let udp_err = |e: std::io::Error| Error::io("udp receiver", e);
     let socket = std::net::UdpSocket::bind("127.0.0.1:0").map_err(udp_err)?;
     let port = socket.local_addr().map_err(udp_err)?.port();
@@ -365,7 +378,11 @@ pub fn bench(size: (u16, u16), seconds: f64, stop: &AtomicBool) -> Result<BenchR
             n
         }
     });
-    let mut config = Config::default();
+    let mut config = Config {
+        run: RunConfig::default(),
+        ..base.clone()
+    };
+    config.run.replay_speed = speed;
     config.run.source = frame::fixture::NAME.into();
     config.run.size = format!("{}x{}", size.0, size.1);
     config.run.loop_source = true;
@@ -409,7 +426,8 @@ pub fn bench(size: (u16, u16), seconds: f64, stop: &AtomicBool) -> Result<BenchR
         datagrams_received: datagrams,
         latency: s.latency_total,
         // The fixture runs at 30 fps.
-        budget_ms: 2.0 * 1000.0 / 30.0,
+        budget_ms: (1 + report.stage1.stride) as f64 * 1000.0 / 30.0 / speed.max(1e-9),
+        stage1: report.stage1.clone(),
         cpu_percent: 100.0 * (s.cpu_s - cpu_before) / seconds,
         rss_range_kib: (rss.iter().copied().min().unwrap_or(0), max_of(&rss)),
         rss_first_last_minute_kib: (max_of(&rss[..minute]), max_of(&rss[rss.len() - minute..])),

@@ -52,6 +52,32 @@ enum ModelCommand {
     /// Run an ONNX model on a raw tensor: IN.npy float32 (B, L, 2, H, W), already normalised,
     /// to OUT.npy float32 (B, L, 20, H, W), the network's output after its final ReLU.
     Run(ModelRunArgs),
+    /// Time one window of the network (pairs/s and peak memory), as one JSON line.
+    Bench(ModelBenchArgs),
+}
+
+#[derive(Args)]
+struct ModelBenchArgs {
+    /// The ONNX model.
+    model: PathBuf,
+    /// Frame size.
+    #[arg(long, value_name = "WxH", default_value = "346x260")]
+    size: String,
+    /// Pairs per window.
+    #[arg(long, default_value_t = 16)]
+    pairs: usize,
+    /// Timed runs after one warm-up (the median is reported).
+    #[arg(long, default_value_t = 3)]
+    runs: usize,
+    /// ONNX Runtime threads (0: one per core).
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+    /// Execution provider.
+    #[arg(long, value_enum, default_value_t = v2ce::stage1::learned::Device::Cpu)]
+    device: v2ce::stage1::learned::Device,
+    /// Keep ONNX Runtime's CPU memory arena (off by default: half the peak memory).
+    #[arg(long)]
+    cpu_arena: bool,
 }
 
 #[derive(Args)]
@@ -70,6 +96,9 @@ struct ModelRunArgs {
     /// Execution provider.
     #[arg(long, value_enum, default_value_t = v2ce::stage1::learned::Device::Cpu)]
     device: v2ce::stage1::learned::Device,
+    /// Keep ONNX Runtime's CPU memory arena (off by default: half the peak memory).
+    #[arg(long)]
+    cpu_arena: bool,
 }
 
 /// Stage 1 tier flags shared by `convert` and `run` (each overrides `[stage1]` and
@@ -195,6 +224,15 @@ struct BenchArgs {
     /// Print the results as JSON lines.
     #[arg(long)]
     json: bool,
+    /// Replay the fixture at this multiple of real time (below 1 for a tier slower than real
+    /// time).
+    #[arg(long, default_value_t = 1.0)]
+    replay_speed: f64,
+    /// TOML configuration for Stage 1 and Stage 2 (the flags below override it).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    #[command(flatten)]
+    tier: TierArgs,
 }
 
 #[derive(Args)]
@@ -357,6 +395,7 @@ fn main() -> ExitCode {
         Command::Devices => devices(),
         Command::Bench(args) => bench(args),
         Command::Model(ModelCommand::Run(args)) => model_run(args),
+        Command::Model(ModelCommand::Bench(args)) => model_bench(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -470,8 +509,19 @@ fn devices() -> Result<()> {
 fn bench(args: BenchArgs) -> Result<()> {
     init_logging();
     let stop = v2ce::daemon::stop_on_signals()?;
+    let mut config = match &args.config {
+        Some(path) => Config::load(path)?,
+        None => Config::default(),
+    };
+    args.tier.apply(&mut config)?;
     for size in &args.sizes {
-        let result = v2ce::daemon::bench(parse_size(size)?, args.seconds, &stop)?;
+        let result = v2ce::daemon::bench(
+            parse_size(size)?,
+            args.seconds,
+            args.replay_speed,
+            &config,
+            &stop,
+        )?;
         if args.json {
             let text = serde_json::to_string(&result)
                 .map_err(|e| Error::invalid("report", e.to_string()))?;
@@ -595,11 +645,33 @@ fn convert(args: ConvertArgs) -> Result<()> {
     Ok(())
 }
 
+fn model_bench(args: ModelBenchArgs) -> Result<()> {
+    let (w, h) = parse_size(&args.size)?;
+    let options = v2ce::stage1::learned::RuntimeOptions {
+        threads: args.threads,
+        device: args.device,
+        library: None,
+        cpu_arena: args.cpu_arena,
+    };
+    let report = v2ce::stage1::learned::raw::bench(
+        &args.model,
+        (w as usize, h as usize),
+        args.pairs,
+        args.runs,
+        &options,
+    )?;
+    let text =
+        serde_json::to_string(&report).map_err(|e| Error::invalid("report", e.to_string()))?;
+    println!("{text}");
+    Ok(())
+}
+
 fn model_run(args: ModelRunArgs) -> Result<()> {
     let options = v2ce::stage1::learned::RuntimeOptions {
         threads: args.threads,
         device: args.device,
         library: None,
+        cpu_arena: args.cpu_arena,
     };
     let report = v2ce::stage1::learned::raw::run_npy(
         &args.model,

@@ -76,6 +76,8 @@ pub struct LearnedConfig {
     pub input: InputEncoding,
     /// The ONNX Runtime library, when it is not found by itself (empty: search).
     pub ort_library: PathBuf,
+    /// Keep ONNX Runtime's CPU memory arena (off: half the peak memory, measured).
+    pub cpu_arena: bool,
 }
 
 impl Default for LearnedConfig {
@@ -91,6 +93,7 @@ impl Default for LearnedConfig {
             device: Device::Cpu,
             input: InputEncoding::Auto,
             ort_library: PathBuf::new(),
+            cpu_arena: false,
         }
     }
 }
@@ -119,6 +122,7 @@ impl LearnedConfig {
             threads: self.threads,
             device: self.device,
             library: (!self.ort_library.as_os_str().is_empty()).then(|| self.ort_library.clone()),
+            cpu_arena: self.cpu_arena,
         }
     }
 }
@@ -254,6 +258,18 @@ impl LearnedStage1 {
                          C = {bins}; set [stage2] bins = {}",
                         c / 2,
                         c / 2
+                    ),
+                ));
+            }
+        }
+        if let Some(p) = network.pairs() {
+            if p != config.window {
+                return Err(Error::invalid(
+                    "stage1.learned.window",
+                    format!(
+                        "{} takes exactly {p} pairs per window; set window = {p} (a model made \
+                         by `v2ce model import` takes any)",
+                        config.model.display()
                     ),
                 ));
             }

@@ -84,3 +84,74 @@ pub fn run_npy(
         nonfinite,
     })
 }
+
+/// What [`bench`] measured: one window of `pairs` pairs at `width x height`.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct BenchReport {
+    /// Frame width.
+    pub width: usize,
+    /// Frame height.
+    pub height: usize,
+    /// Pairs per window.
+    pub pairs: usize,
+    /// ONNX Runtime intra-op threads (0: its default).
+    pub threads: usize,
+    /// Execution provider.
+    pub provider: &'static str,
+    /// Seconds of each timed run (after one warm-up run).
+    pub runs_s: Vec<f64>,
+    /// Median of `runs_s`.
+    pub median_s: f64,
+    /// `pairs / median_s`.
+    pub pairs_per_s: f64,
+    /// Peak resident set of the process, MiB (opening the model included).
+    pub peak_rss_mib: f64,
+}
+
+/// Times `runs` windows of `pairs` pairs at `size = (width, height)` after one warm-up, on a
+/// fixed pseudo-random input (speed does not depend on the values).
+pub fn bench(
+    model: &Path,
+    size: (usize, usize),
+    pairs: usize,
+    runs: usize,
+    options: &RuntimeOptions,
+) -> Result<BenchReport> {
+    let (w, h) = size;
+    if w == 0 || h == 0 || pairs == 0 || runs == 0 {
+        return Err(Error::invalid("bench", "size, pairs and runs must be positive"));
+    }
+    let mut network = Network::open(model, options)?;
+    let shape = [1, pairs, 2, h, w];
+    let n: usize = shape.iter().product();
+    let mut state = 0x2545_F491_4F6C_DD1Du64;
+    let input: Vec<f32> = (0..n)
+        .map(|_| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 40) as f32 / (1u64 << 24) as f32 * 4.0 - 1.0
+        })
+        .collect();
+    network.run(&input, shape)?;
+    let mut runs_s = Vec::with_capacity(runs);
+    for _ in 0..runs {
+        let started = Instant::now();
+        network.run(&input, shape)?;
+        runs_s.push(started.elapsed().as_secs_f64());
+    }
+    let mut sorted = runs_s.clone();
+    sorted.sort_by(f64::total_cmp);
+    let median_s = sorted[sorted.len() / 2];
+    Ok(BenchReport {
+        width: w,
+        height: h,
+        pairs,
+        threads: options.threads,
+        provider: network.provider(),
+        runs_s,
+        median_s,
+        pairs_per_s: pairs as f64 / median_s,
+        peak_rss_mib: crate::pipeline::stats::ProcessUsage::now().max_rss_kib as f64 / 1024.0,
+    })
+}

@@ -51,6 +51,10 @@ pub struct RuntimeOptions {
     pub device: Device,
     /// The library file, when not found by [`find_library`]'s search.
     pub library: Option<PathBuf>,
+    /// Keep ONNX Runtime's CPU memory arena (a pool that only grows). Off by default: measured
+    /// at 346x260 with 16 pairs, the arena doubled the peak resident set (3.3 GB against 1.5 GB)
+    /// and made no run faster.
+    pub cpu_arena: bool,
 }
 
 fn library_names(dir: &Path) -> Option<PathBuf> {
@@ -196,6 +200,21 @@ fn ort_err(what: &str) -> impl Fn(ort::Error) -> Error + '_ {
     move |e| Error::invalid("ONNX Runtime", format!("{what}: {e}"))
 }
 
+/// Turns off ONNX Runtime's CPU memory arena: each tensor is freed when its last reader is
+/// done instead of staying in a pool that only grows.
+fn disable_cpu_arena(builder: &mut ort::session::builder::SessionBuilder) -> Result<()> {
+    use ort::AsPointer;
+    // SAFETY: the builder owns a valid OrtSessionOptions; the call only sets a flag on it and
+    // returns a status we own (null on success).
+    let status = unsafe { (ort::api().DisableCpuMemArena)(builder.ptr_mut()) };
+    if status.0.is_null() {
+        return Ok(());
+    }
+    // SAFETY: a non-null status is ours to read and release exactly once.
+    unsafe { (ort::api().ReleaseStatus)(status.0) };
+    Err(Error::invalid("ONNX Runtime", "could not turn off the CPU memory arena"))
+}
+
 /// Symbolic or fixed dimensions of a model input or output (-1: any).
 fn dims(t: &ValueType) -> Option<Vec<i64>> {
     match t {
@@ -212,6 +231,7 @@ pub struct Network {
     path: PathBuf,
     provider: &'static str,
     channels: Option<usize>,
+    pairs: Option<usize>,
 }
 
 impl Network {
@@ -230,6 +250,9 @@ impl Network {
             builder = builder
                 .with_intra_threads(options.threads)
                 .map_err(|e| Error::invalid("ONNX Runtime", format!("threads: {e}")))?;
+        }
+        if !options.cpu_arena {
+            disable_cpu_arena(&mut builder)?;
         }
         let mut provider = "cpu";
         let cuda = ort::ep::CUDA::default();
@@ -295,6 +318,9 @@ impl Network {
                 ),
             ));
         }
+        let pairs = din
+            .as_ref()
+            .and_then(|d| (d[1] > 0).then_some(d[1] as usize));
         let dout = dims(outputs[0].dtype());
         let channels = match dout.as_deref() {
             Some([_, _, c, _, _]) => (*c > 0).then_some(*c as usize),
@@ -313,6 +339,7 @@ impl Network {
             path: path.to_path_buf(),
             provider,
             channels,
+            pairs,
         })
     }
 
@@ -324,6 +351,11 @@ impl Network {
     /// Output channels (`2*C`) when the model declares them.
     pub fn channels(&self) -> Option<usize> {
         self.channels
+    }
+
+    /// Pairs per window when the model fixes them (a model imported by v2ce takes any).
+    pub fn pairs(&self) -> Option<usize> {
+        self.pairs
     }
 
     /// The model file.
