@@ -594,7 +594,9 @@ fn other_options_change_the_graph() {
         spectral_norm: SpectralNorm::Stored,
         fold_batch_norm: false,
     };
-    let built = arch.build_model(&mut tensors, &options, "seeded3").unwrap();
+    let built = arch
+        .build_model(&mut tensors, &options, Path::new("seeded3"))
+        .unwrap();
     let g = built.model.graph.as_ref().unwrap();
     let bn = g
         .node
@@ -617,4 +619,64 @@ fn other_options_change_the_graph() {
         .collect();
     assert!(meta.contains(&("spectral_norm".into(), "stored".into())));
     assert!(meta.contains(&("batch_norm".into(), "kept".into())));
+}
+
+/// A tiny member of the same UNet family, with every float 0.5 (and variances 1).
+fn tiny() -> (Architecture, Vec<(String, Tensor)>) {
+    let arch = Architecture::unet(2, 4, 4, 1, 1);
+    let sd = arch
+        .state_dict_keys()
+        .into_iter()
+        .map(|k| {
+            let n: usize = k.shape.iter().product();
+            let t = if k.kind.is_int() {
+                Tensor::i64(k.shape, vec![0])
+            } else if k.name.ends_with("running_var") {
+                Tensor::f32(k.shape, vec![1.0; n])
+            } else {
+                Tensor::f32(k.shape, vec![0.5; n])
+            };
+            (k.name, t)
+        })
+        .collect();
+    (arch, sd)
+}
+
+#[test]
+fn bad_values_name_their_key() {
+    let (arch, sd) = tiny();
+    let origin = Path::new("tiny.pt");
+    let (mut ok, _) = arch.select_tensors(origin, sd.clone()).unwrap();
+    let built = arch
+        .build_model(&mut ok, &ImportOptions::default(), origin)
+        .unwrap();
+    // head, 1 encoder (3 convs), 1 resblock (3), 1 decoder (3), pred: 11 convs, 22 initializers.
+    assert_eq!(built.model.graph.unwrap().initializer.len(), 22);
+
+    for (key, value, expected) in [
+        ("UNet.encoders.0.conv2.weight", f32::NAN, "non-finite"),
+        ("UNet.encoders.0.bn1.running_var", -1.0, "not above -eps"),
+        (
+            "UNet.resblocks.0.conv1.module.weight_bar",
+            0.0,
+            "sigma is 0",
+        ),
+    ] {
+        let mut sd = sd.clone();
+        let t = &mut sd.iter_mut().find(|(n, _)| n == key).unwrap().1;
+        match &mut t.data {
+            TensorData::F32(v) => v.iter_mut().for_each(|x| *x = value),
+            TensorData::I64(_) => unreachable!(),
+        }
+        let (mut tensors, _) = arch.select_tensors(origin, sd).unwrap();
+        let err = arch
+            .build_model(&mut tensors, &ImportOptions::default(), origin)
+            .unwrap_err();
+        let msg = err.to_string();
+        assert!(
+            matches!(&err, Error::StateDict { key: k, .. } if k == key),
+            "{msg}"
+        );
+        assert!(msg.contains("tiny.pt") && msg.contains(expected), "{msg}");
+    }
 }

@@ -156,11 +156,7 @@ pub fn import(checkpoint: &Path, output: &Path, options: &ImportOptions) -> Resu
         archive: &mut archive,
         selection: &selection,
     };
-    let source_name = checkpoint
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let built = arch.build_model(&mut source, options, &source_name)?;
+    let built = arch.build_model(&mut source, options, checkpoint)?;
     let initializers = built
         .model
         .graph

@@ -530,14 +530,20 @@ impl Architecture {
     }
 
     /// Builds the ONNX model, reading each weight from `source` as the graph needs it.
-    /// `source_name` (the checkpoint's file name) goes into the metadata.
+    /// `origin` (the checkpoint) names the weights in errors; its file name goes into the
+    /// metadata.
     pub fn build_model(
         &self,
         source: &mut dyn WeightSource,
         options: &ImportOptions,
-        source_name: &str,
+        origin: &Path,
     ) -> Result<BuiltModel> {
+        let source_name = origin
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
         let mut g = GraphBuilder {
+            origin,
             source,
             options: *options,
             nodes: Vec::new(),
@@ -674,7 +680,7 @@ impl Architecture {
         let metadata = vec![
             onnx::metadata("producer", "v2ce"),
             onnx::metadata("architecture", "v2ce-3d-unet"),
-            onnx::metadata("source", source_name),
+            onnx::metadata("source", &source_name),
             onnx::metadata("spectral_norm", options.spectral_norm.name()),
             onnx::metadata("batch_norm", batch_norm),
             onnx::metadata("parameters", &self.trainable_parameters().to_string()),
@@ -805,6 +811,7 @@ pub struct BuiltModel {
 }
 
 struct GraphBuilder<'a> {
+    origin: &'a Path,
     source: &'a mut dyn WeightSource,
     options: ImportOptions,
     nodes: Vec<NodeProto>,
@@ -812,34 +819,28 @@ struct GraphBuilder<'a> {
     spectral_norms: Vec<(String, f64)>,
 }
 
-/// A float tensor's data, or an error naming the key.
-fn floats(key: &str, t: Tensor) -> Result<Vec<f32>> {
-    match t.data {
-        TensorData::F32(v) => Ok(v),
-        TensorData::I64(_) => Err(Error::invalid(
-            "state dict",
-            format!("{key} holds integers where floats are expected"),
-        )),
-    }
-}
-
-fn check_finite(key: &str, values: &[f32]) -> Result<()> {
-    match values.iter().position(|v| !v.is_finite()) {
-        None => Ok(()),
-        Some(i) => Err(Error::invalid(
-            "state dict",
-            format!(
-                "{key} holds a non-finite value ({}) at element {i}",
-                values[i]
-            ),
-        )),
-    }
-}
-
 impl GraphBuilder<'_> {
-    fn take_floats(&mut self, key: &str) -> Result<Vec<f32>> {
-        let values = floats(key, self.source.take(key)?)?;
-        check_finite(key, &values)?;
+    /// The floats stored under `key`, which must number `len` and be finite.
+    fn take_floats(&mut self, key: &str, len: usize) -> Result<Vec<f32>> {
+        let fail = |message: String| state_dict_error(self.origin, key, message);
+        let values = match self.source.take(key)?.data {
+            TensorData::F32(v) => v,
+            TensorData::I64(_) => {
+                return Err(fail("holds integers where floats are expected".into()));
+            }
+        };
+        if values.len() != len {
+            return Err(fail(format!(
+                "holds {} values where {len} are expected",
+                values.len()
+            )));
+        }
+        if let Some(i) = values.iter().position(|v| !v.is_finite()) {
+            return Err(fail(format!(
+                "holds a non-finite value ({}) at element {i}",
+                values[i]
+            )));
+        }
         Ok(values)
     }
 
@@ -850,28 +851,29 @@ impl GraphBuilder<'_> {
         let cols = conv.fan_in();
         let (mut weight, sigma) = if conv.spectral_norm {
             let m = format!("{}.module", conv.path);
-            let bar = self.take_floats(&format!("{m}.weight_bar"))?;
-            let u = self.take_floats(&format!("{m}.weight_u"))?;
-            let v = self.take_floats(&format!("{m}.weight_v"))?;
+            let bar = self.take_floats(&format!("{m}.weight_bar"), rows * cols)?;
+            let u = self.take_floats(&format!("{m}.weight_u"), rows)?;
+            let v = self.take_floats(&format!("{m}.weight_v"), cols)?;
             let sigma = spectral_sigma(self.options.spectral_norm, &bar, rows, cols, &u, &v);
             // Only the Stored mode can give a negative sigma (random u, v); it is used as it
             // is, like the formula says, to show how wrong that resolution is.
             if !sigma.is_finite() || sigma == 0.0 {
-                return Err(Error::invalid(
-                    "state dict",
-                    format!(
-                        "{}: spectral norm sigma is {sigma}, cannot divide by it",
-                        conv.path
-                    ),
+                return Err(state_dict_error(
+                    self.origin,
+                    &format!("{m}.weight_bar"),
+                    format!("spectral norm sigma is {sigma}, cannot divide by it"),
                 ));
             }
             self.spectral_norms.push((conv.path.clone(), sigma));
             (bar, sigma)
         } else {
-            (self.take_floats(&format!("{}.weight", conv.path))?, 1.0)
+            (
+                self.take_floats(&format!("{}.weight", conv.path), rows * cols)?,
+                1.0,
+            )
         };
         let bias: Option<Vec<f32>> = if conv.bias {
-            Some(self.take_floats(&format!("{}.bias", conv.path))?)
+            Some(self.take_floats(&format!("{}.bias", conv.path), rows)?)
         } else {
             None
         };
@@ -880,18 +882,19 @@ impl GraphBuilder<'_> {
         let bias_name = format!("{}.bias", conv.path);
         let has_bias;
         if let Some(bn) = fold {
-            let gamma = self.take_floats(&format!("{bn}.weight"))?;
-            let beta = self.take_floats(&format!("{bn}.bias"))?;
-            let mean = self.take_floats(&format!("{bn}.running_mean"))?;
-            let var = self.take_floats(&format!("{bn}.running_var"))?;
+            let gamma = self.take_floats(&format!("{bn}.weight"), rows)?;
+            let beta = self.take_floats(&format!("{bn}.bias"), rows)?;
+            let mean = self.take_floats(&format!("{bn}.running_mean"), rows)?;
+            let var = self.take_floats(&format!("{bn}.running_var"), rows)?;
             let mut folded_bias = Vec::with_capacity(rows);
             for o in 0..rows {
                 let b = bias.as_ref().map_or(0.0, |b| f64::from(b[o]));
                 let (scale, shift) = fold_batch_norm(b, gamma[o], beta[o], mean[o], var[o])
                     .ok_or_else(|| {
-                        Error::invalid(
-                            "state dict",
-                            format!("{bn}.running_var[{o}] = {} is not above -eps", var[o]),
+                        state_dict_error(
+                            self.origin,
+                            &format!("{bn}.running_var"),
+                            format!("element {o} is {}, not above -eps", var[o]),
                         )
                     })?;
                 let factor = scale / sigma;
@@ -953,7 +956,7 @@ impl GraphBuilder<'_> {
                 let names =
                     ["weight", "bias", "running_mean", "running_var"].map(|s| format!("{bn}.{s}"));
                 for name in &names {
-                    let values = self.take_floats(name)?;
+                    let values = self.take_floats(name, rows)?;
                     self.initializers
                         .push(onnx::initializer_f32(name, &[rows], &values));
                 }
@@ -1005,6 +1008,10 @@ pub fn fold_batch_norm(b: f64, gamma: f32, beta: f32, mean: f32, var: f32) -> Op
 
 /// The sigma a spectral-norm convolution divides `weight_bar` by, viewed as a `rows x cols`
 /// row-major matrix W, with the stored `u` (length rows) and `v` (length cols). Computed in f64.
+///
+/// # Panics
+///
+/// When `w` holds fewer than `rows * cols` values or `u`, `v` are shorter than stated.
 pub fn spectral_sigma(
     mode: SpectralNorm,
     w: &[f32],
@@ -1057,6 +1064,10 @@ fn mat_vec(w: &[f32], rows: usize, cols: usize, v: &[f64]) -> Vec<f64> {
 /// The largest singular value of a `rows x cols` matrix, in f64: the Gram matrix of the smaller
 /// side, raised to the power 2^14 by repeated squaring (so the top eigenvector dominates even when
 /// the spectrum's gap is small), then a Rayleigh quotient refined by a few power steps.
+///
+/// # Panics
+///
+/// When `w` holds fewer than `rows * cols` values.
 pub fn largest_singular_value(w: &[f32], rows: usize, cols: usize) -> f64 {
     let n = rows.min(cols);
     if n == 0 {
