@@ -21,6 +21,17 @@ pub enum Error {
         /// What is wrong, with a line or byte position where known.
         message: String,
     },
+    /// A checkpoint whose state dict does not fit the network: `key` is the first entry found
+    /// missing, unexpected or mis-shaped.
+    #[error("{path}: {key}: {message}")]
+    StateDict {
+        /// The checkpoint.
+        path: PathBuf,
+        /// The first offending state-dict key.
+        key: String,
+        /// What is wrong with it (expected and found shapes), and how many others are wrong.
+        message: String,
+    },
     /// A run (conversion, daemon) that ended by a failure; the message says which part failed.
     #[error("{0}")]
     Run(String),

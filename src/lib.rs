@@ -17,6 +17,7 @@ pub mod format;
 pub mod frame;
 pub mod interval;
 pub mod metrics;
+pub mod model;
 pub mod pipeline;
 pub mod sink;
 pub mod stage1;
