@@ -49,6 +49,9 @@ enum Command {
 
 #[derive(Subcommand)]
 enum ModelCommand {
+    /// Turn a PyTorch checkpoint of the V2CE generator (the toolbox's v2ce_3d.pt, or a
+    /// Lightning .ckpt) into an ONNX model, without PyTorch or a GPU.
+    Import(ModelImportArgs),
     /// Run an ONNX model on a raw tensor: IN.npy float32 (B, L, 2, H, W), already normalised,
     /// to OUT.npy float32 (B, L, 20, H, W), the network's output after its final ReLU.
     Run(ModelRunArgs),
@@ -78,6 +81,22 @@ struct ModelBenchArgs {
     /// Keep ONNX Runtime's CPU memory arena (off by default: half the peak memory).
     #[arg(long)]
     cpu_arena: bool,
+}
+
+#[derive(Args)]
+struct ModelImportArgs {
+    /// The checkpoint (a torch.save zip archive of the state dict).
+    checkpoint: PathBuf,
+    /// The ONNX model to write (written under a temporary name, renamed when complete).
+    #[arg(short, long, value_name = "M.onnx")]
+    output: PathBuf,
+    /// How spectral-norm weights are resolved: power-iteration (what the reference does at its
+    /// first call after loading; the only one that reproduces it), stored, exact.
+    #[arg(long, value_enum, default_value_t = v2ce::model::SpectralNorm::PowerIteration)]
+    spectral_norm: v2ce::model::SpectralNorm,
+    /// Keep BatchNorm as nodes instead of folding it into the convolutions.
+    #[arg(long)]
+    keep_bn: bool,
 }
 
 #[derive(Args)]
@@ -394,6 +413,7 @@ fn main() -> ExitCode {
         Command::Run(args) => run(args),
         Command::Devices => devices(),
         Command::Bench(args) => bench(args),
+        Command::Model(ModelCommand::Import(args)) => model_import(args),
         Command::Model(ModelCommand::Run(args)) => model_run(args),
         Command::Model(ModelCommand::Bench(args)) => model_bench(args),
     };
@@ -642,6 +662,46 @@ fn convert(args: ConvertArgs) -> Result<()> {
             report.repaired.clamped
         );
     }
+    Ok(())
+}
+
+fn model_import(args: ModelImportArgs) -> Result<()> {
+    let options = v2ce::model::ImportOptions {
+        spectral_norm: args.spectral_norm,
+        fold_batch_norm: !args.keep_bn,
+    };
+    let r = v2ce::model::import(&args.checkpoint, &args.output, &options)?;
+    let sigmas: Vec<f64> = r.spectral_norms.iter().map(|(_, s)| *s).collect();
+    let (lo, hi) = sigmas
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &s| {
+            (a.min(s), b.max(s))
+        });
+    eprintln!(
+        "v2ce: {} -> {} ({:.1} MB): {} tensors read{}{}, {} parameters, {} spectral norms \
+         resolved by {} (sigma {:.4}..{:.4}), BatchNorm {}, {} initializers",
+        r.checkpoint.display(),
+        r.output.display(),
+        r.output_bytes as f64 / 1e6,
+        r.keys_read,
+        if r.prefix_stripped {
+            ", Lightning prefix `model.` stripped"
+        } else {
+            ""
+        },
+        if r.dropped_gan_keys > 0 {
+            format!(", {} discriminator tensors dropped", r.dropped_gan_keys)
+        } else {
+            String::new()
+        },
+        r.parameters,
+        sigmas.len(),
+        args.spectral_norm.name(),
+        lo,
+        hi,
+        if args.keep_bn { "kept" } else { "folded" },
+        r.initializers
+    );
     Ok(())
 }
 

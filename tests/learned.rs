@@ -99,7 +99,11 @@ fn model(mode: &str) -> PathBuf {
 fn gray(path: &Path) -> (usize, usize, Vec<f32>) {
     let img = image::open(path).unwrap().to_luma8();
     let (w, h) = (img.width() as usize, img.height() as usize);
-    (w, h, img.into_raw().iter().map(|&v| v as f32 / 255.0).collect())
+    (
+        w,
+        h,
+        img.into_raw().iter().map(|&v| v as f32 / 255.0).collect(),
+    )
 }
 
 /// The toolbox's input for 17 frames: (1, 16, 2, H, W), `(v - 0.153) / 0.165`.
@@ -206,7 +210,7 @@ fn the_seeded_checkpoint_is_the_one_the_reference_used() {
         assert_eq!(tensor.shape, shape, "{key}");
         if let Some(values) = tensor.as_f32() {
             for (a, b) in values.iter().zip(e["first"].as_array().unwrap()) {
-                assert_eq!(*a as f64, b.as_f64().unwrap(), "{key}");
+                assert_eq!(*a, b.as_f64().unwrap() as f32, "{key}");
             }
         }
     }
@@ -273,6 +277,13 @@ fn convert_plans_and_merges_windows_as_the_reference() {
     assert!(!ev.is_empty());
     assert!(ev.windows(2).all(|w| w[0].t <= w[1].t));
     assert!(ev.first().unwrap().t >= 250 && ev.last().unwrap().t <= 2_320_251);
+    // Every interval of the 58 has events (a random-weight network fires everywhere).
+    let per_interval = |k: i64| {
+        ev.iter()
+            .filter(|e| e.t >= 250 + 40_000 * k && e.t < 250 + 40_000 * (k + 1))
+            .count()
+    };
+    assert!((0..57).all(|k| per_interval(k) > 0));
 }
 
 #[test]
@@ -282,7 +293,13 @@ fn bad_checkpoints_are_clear_errors_and_leave_no_model() {
     // Not an archive at all.
     let foreign = dir.join("foreign.pt");
     std::fs::write(&foreign, b"this is not a PyTorch checkpoint").unwrap();
-    let err = fails(v2ce().args(["model", "import"]).arg(&foreign).arg("-o").arg(&out));
+    let err = fails(
+        v2ce()
+            .args(["model", "import"])
+            .arg(&foreign)
+            .arg("-o")
+            .arg(&out),
+    );
     assert!(err.contains("foreign.pt"), "{err}");
     // A real checkpoint cut short.
     let small = dir.join("small.pt");
@@ -292,10 +309,25 @@ fn bad_checkpoints_are_clear_errors_and_leave_no_model() {
     let bytes = std::fs::read(&small).unwrap();
     let cut = dir.join("cut.pt");
     std::fs::write(&cut, &bytes[..bytes.len() * 2 / 3]).unwrap();
-    fails(v2ce().args(["model", "import"]).arg(&cut).arg("-o").arg(&out));
+    fails(
+        v2ce()
+            .args(["model", "import"])
+            .arg(&cut)
+            .arg("-o")
+            .arg(&out),
+    );
     // A whole archive missing keys: the first missing one is named.
-    let err = fails(v2ce().args(["model", "import"]).arg(&small).arg("-o").arg(&out));
-    assert!(err.contains("UNet.encoders.1"), "{err}");
+    let err = fails(
+        v2ce()
+            .args(["model", "import"])
+            .arg(&small)
+            .arg("-o")
+            .arg(&out),
+    );
+    assert!(
+        err.contains("UNet.encoders.2.conv1.weight: missing"),
+        "{err}"
+    );
     assert!(!out.exists(), "a failed import left {}", out.display());
 }
 
@@ -332,4 +364,208 @@ fn a_missing_runtime_library_says_how_to_install_it() {
     );
     assert!(err.contains("ORT_DYLIB_PATH"), "{err}");
     assert!(!dir.join("out.npy").exists());
+}
+
+/// A tiny model with the V2CE interface for fast pipeline tests: each frame pair's two planes
+/// tiled to `2 * 10` channels, then `op` (`Relu`: non-negative voxels; `Log`: NaN where the
+/// normalised input is negative, as a broken model would give). With `rank4`, a model whose
+/// input is (batch, 2, height, width) instead.
+fn tiny_model(path: &Path, op: &str, rank4: bool) {
+    use v2ce::model::onnx::*;
+    let dims5 = |c: i64| {
+        vec![
+            Err("batch"),
+            Err("pairs"),
+            Ok(c),
+            Err("height"),
+            Err("width"),
+        ]
+    };
+    type Dims<'a> = Vec<Result<i64, &'a str>>;
+    let (input, output, repeats): (Dims, Dims, Vec<i64>) = if rank4 {
+        (
+            vec![Err("batch"), Ok(2), Err("height"), Err("width")],
+            vec![Err("batch"), Ok(20), Err("height"), Err("width")],
+            vec![1, 10, 1, 1],
+        )
+    } else {
+        (dims5(2), dims5(20), vec![1, 1, 10, 1, 1])
+    };
+    let mut raw = Vec::new();
+    for r in &repeats {
+        raw.extend_from_slice(&r.to_le_bytes());
+    }
+    let repeats = TensorProto {
+        dims: vec![repeats.len() as i64],
+        data_type: Some(INT64),
+        name: Some("repeats".into()),
+        raw_data: Some(raw),
+    };
+    let graph = GraphProto {
+        node: vec![
+            node("Tile", "tile", &["frames", "repeats"], &["tiled"], vec![]),
+            node(op, "op", &["tiled"], &["voxels"], vec![]),
+        ],
+        name: Some("tiny".into()),
+        initializer: vec![repeats],
+        input: vec![tensor_value("frames", FLOAT, &input)],
+        output: vec![tensor_value("voxels", FLOAT, &output)],
+        ..Default::default()
+    };
+    let model = ModelProto {
+        ir_version: Some(8),
+        opset_import: vec![OperatorSetIdProto {
+            domain: Some(String::new()),
+            version: Some(17),
+        }],
+        producer_name: Some("v2ce tests".into()),
+        graph: Some(graph),
+        ..Default::default()
+    };
+    let mut file = std::fs::File::create(path).unwrap();
+    write_model(model, &mut file).unwrap();
+}
+
+#[test]
+fn a_model_with_another_interface_is_refused_clearly() {
+    ort_or_skip!("a_model_with_another_interface_is_refused_clearly");
+    let dir = common::temp_dir("learned-rank4");
+    let model = dir.join("rank4.onnx");
+    tiny_model(&model, "Relu", true);
+    let err = fails(
+        v2ce()
+            .arg("convert")
+            .arg(fixtures().join("frames_61x83"))
+            .arg("--model")
+            .arg(&model)
+            .arg("-o")
+            .arg(dir.join("ev.csv")),
+    );
+    assert!(err.contains("(batch, pairs, 2, height, width)"), "{err}");
+    assert!(!dir.join("ev.csv").exists());
+    // A raw tensor of the wrong rank for a good model.
+    let good = dir.join("relu.onnx");
+    tiny_model(&good, "Relu", false);
+    let input = dir.join("in.npy");
+    ndarray_npy::write_npy(&input, &ArrayD::<f32>::zeros(IxDyn(&[1, 2, 4, 4]))).unwrap();
+    let err = fails(
+        v2ce()
+            .args(["model", "run"])
+            .arg(&good)
+            .arg("--input-npy")
+            .arg(&input)
+            .arg("--output-npy")
+            .arg(dir.join("out.npy")),
+    );
+    assert!(err.contains("(B, L, 2, H, W)"), "{err}");
+    assert!(!dir.join("out.npy").exists());
+}
+
+#[test]
+fn nan_from_a_model_is_counted_and_repaired() {
+    ort_or_skip!("nan_from_a_model_is_counted_and_repaired");
+    let dir = common::temp_dir("learned-nan");
+    let model = dir.join("log.onnx");
+    tiny_model(&model, "Log", false);
+    let events = dir.join("ev.csv");
+    let err = ok(v2ce()
+        .arg("convert")
+        .arg(fixtures().join("frames_61x83"))
+        .arg("--model")
+        .arg(&model)
+        .args(["--max-frames", "9"])
+        .arg("-o")
+        .arg(&events));
+    // "the model gave N NaN/infinite values; Stage 2 repaired N non-finite, M negative, ..."
+    let count = |after: &str| -> u64 {
+        let at = err
+            .find(after)
+            .unwrap_or_else(|| panic!("{after:?} in {err}"));
+        err[..at]
+            .split_whitespace()
+            .last()
+            .unwrap()
+            .parse()
+            .unwrap()
+    };
+    let nan = count(" NaN/infinite");
+    assert!(nan > 0, "{err}");
+    assert_eq!(count(" non-finite"), nan, "{err}");
+    assert!(count(" negative") > 0, "{err}");
+    // The finite positive values still made events.
+    let rec = v2ce::format::read_events(&events).unwrap();
+    assert!(!rec.events.events().is_empty());
+}
+
+#[test]
+fn the_daemon_runs_overlapping_windows_and_flushes_at_the_end() {
+    ort_or_skip!("the_daemon_runs_overlapping_windows_and_flushes_at_the_end");
+    let dir = common::temp_dir("learned-daemon");
+    let model = dir.join("relu.onnx");
+    tiny_model(&model, "Relu", false);
+    let out = dir.join("ev.csv");
+    let run = v2ce()
+        .arg("run")
+        .arg("--source")
+        .arg(fixtures().join("frames_61x83"))
+        .args([
+            "--udp",
+            "",
+            "--queue-policy",
+            "block",
+            "--replay-speed",
+            "20",
+        ])
+        .arg("--out")
+        .arg(&out)
+        .arg("--model")
+        .arg(&model)
+        .args(["--window", "4", "--stride", "1", "--json"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert!(run.status.success(), "{err}");
+    let report: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
+    let s1 = &report["stage1"];
+    assert_eq!(s1["tier"], "learned");
+    assert_eq!(
+        (s1["window"].as_u64(), s1["stride"].as_u64()),
+        (Some(4), Some(1))
+    );
+    // 58 intervals: the first window hands on 4, then one window per frame hands on 1.
+    assert_eq!(s1["learned"]["intervals"], 58);
+    assert_eq!(s1["learned"]["windows"], 1 + 54);
+    assert_eq!(s1["learned"]["pairs_run"], 4 * 55);
+    let rec = v2ce::format::read_events(&out).unwrap();
+    assert_eq!(
+        rec.events.events().len() as u64,
+        report["stats"]["events_out"].as_u64().unwrap()
+    );
+}
+
+#[test]
+fn writing_voxels_needs_a_tier_that_makes_them() {
+    let dir = common::temp_dir("learned-novoxels");
+    let err = fails(
+        v2ce()
+            .arg("convert")
+            .arg(fixtures().join("frames_61x83"))
+            .arg("--write-voxels")
+            .arg(dir.join("v.npy"))
+            .arg("-o")
+            .arg(dir.join("ev.csv")),
+    );
+    assert!(err.contains("--mode voxels"), "{err}");
+    assert!(!dir.join("v.npy").exists());
+    // The physics tier in voxel mode writes them: one grid per interval.
+    ok(v2ce()
+        .arg("convert")
+        .arg(fixtures().join("frames_61x83"))
+        .args(["--mode", "voxels", "--max-frames", "6"])
+        .arg("--write-voxels")
+        .arg(dir.join("v.npy"))
+        .arg("-o")
+        .arg(dir.join("ev.csv")));
+    let v: ArrayD<f32> = ndarray_npy::read_npy(dir.join("v.npy")).unwrap();
+    assert_eq!(v.shape(), &[5, 20, 61, 83]);
 }

@@ -9,7 +9,7 @@ What it makes
     * in --out (default tests/fixtures/learned/):
         frames_61x83/frame_000000.png ... frame_000058.png, frames_61x83/times.txt
             the 59 DAVIS346 APS frames cropped to rows 100..160, cols 130..212, and
-            their mid-exposure times in integer microseconds (from images.txt);
+            their mid-exposure times in seconds, 6 decimals (images.txt rounded to the us);
         parity_260x346_values.npy / _meta.json
             the first forward call after loading, on the first 17 full-size frames
             (input 1x16x2x260x346), output sampled with stride 307;
@@ -145,7 +145,7 @@ def main():
         write_gray8(os.path.join(fdir, f"frame_{i:06d}.png"), img)
         assert np.array_equal(read_gray8(os.path.join(fdir, f"frame_{i:06d}.png")), img)
     with open(os.path.join(fdir, "times.txt"), "w") as f:
-        f.writelines(f"{t}\n" for t in times)
+        f.writelines(f"{t / 1e6:.6f}\n" for t in times)
 
     sd = seeded_state_dict(SEED)
     model = build_model(sd)

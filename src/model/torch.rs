@@ -1175,7 +1175,7 @@ impl Drop for Vm<'_> {
 }
 
 fn set_items(dict: &mut Dict, items: Vec<Value>, at: usize) -> VmResult<()> {
-    if items.len() % 2 != 0 {
+    if !items.len().is_multiple_of(2) {
         return Err(format!("SETITEMS with an odd number of items at byte {at}"));
     }
     let mut it = items.into_iter();

@@ -28,7 +28,7 @@ pub const OPSET: i64 = 17;
 pub const IR_VERSION: i64 = 8;
 
 /// How a spectral-norm convolution's sigma is resolved from `weight_bar`, `weight_u`, `weight_v`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, clap::ValueEnum)]
 pub enum SpectralNorm {
     /// What the reference's first forward call after loading does (spec §3.2, Appendix A): from
     /// the stored u, `v = n(Wᵀu)`, `u' = n(W v)`, `sigma = u'ᵀ W v`, in f64.

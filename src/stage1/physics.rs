@@ -654,7 +654,12 @@ impl super::Stage1 for PhysicsStage1 {
                 voxelizer.voxelize_into(&self.scratch, interval, &mut grid)?;
                 out.push(super::Stage1Batch::Voxels(grid, interval));
             }
-            _ => {
+            (_, None) => {
+                // The first frame only sets the pixels: no interval ends here.
+                self.scratch.clear();
+                self.sim.step(frame, &mut self.scratch)?;
+            }
+            (None, Some(_)) => {
                 let mut events = Vec::new();
                 self.sim.step(frame, &mut events)?;
                 out.push(super::Stage1Batch::Events {

@@ -119,7 +119,10 @@ pub fn bench(
 ) -> Result<BenchReport> {
     let (w, h) = size;
     if w == 0 || h == 0 || pairs == 0 || runs == 0 {
-        return Err(Error::invalid("bench", "size, pairs and runs must be positive"));
+        return Err(Error::invalid(
+            "bench",
+            "size, pairs and runs must be positive",
+        ));
     }
     let mut network = Network::open(model, options)?;
     let shape = [1, pairs, 2, h, w];

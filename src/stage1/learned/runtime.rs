@@ -212,7 +212,10 @@ fn disable_cpu_arena(builder: &mut ort::session::builder::SessionBuilder) -> Res
     }
     // SAFETY: a non-null status is ours to read and release exactly once.
     unsafe { (ort::api().ReleaseStatus)(status.0) };
-    Err(Error::invalid("ONNX Runtime", "could not turn off the CPU memory arena"))
+    Err(Error::invalid(
+        "ONNX Runtime",
+        "could not turn off the CPU memory arena",
+    ))
 }
 
 /// Symbolic or fixed dimensions of a model input or output (-1: any).
