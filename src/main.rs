@@ -72,15 +72,8 @@ struct ModelBenchArgs {
     /// Timed runs after one warm-up (the median is reported).
     #[arg(long, default_value_t = 3)]
     runs: usize,
-    /// ONNX Runtime threads (0: one per core).
-    #[arg(long, default_value_t = 0)]
-    threads: usize,
-    /// Execution provider.
-    #[arg(long, value_enum, default_value_t = v2ce::stage1::learned::Device::Cpu)]
-    device: v2ce::stage1::learned::Device,
-    /// Keep ONNX Runtime's CPU memory arena (off by default: half the peak memory).
-    #[arg(long)]
-    cpu_arena: bool,
+    #[command(flatten)]
+    runtime: RuntimeArgs,
 }
 
 #[derive(Args)]
@@ -109,6 +102,13 @@ struct ModelRunArgs {
     /// Where to write the output tensor (.npy, float32).
     #[arg(long, value_name = "OUT.npy")]
     output_npy: PathBuf,
+    #[command(flatten)]
+    runtime: RuntimeArgs,
+}
+
+/// How `v2ce model run` and `bench` run the network.
+#[derive(Args)]
+struct RuntimeArgs {
     /// ONNX Runtime threads (0: one per core).
     #[arg(long, default_value_t = 0)]
     threads: usize,
@@ -118,6 +118,17 @@ struct ModelRunArgs {
     /// Keep ONNX Runtime's CPU memory arena (off by default: half the peak memory).
     #[arg(long)]
     cpu_arena: bool,
+}
+
+impl RuntimeArgs {
+    fn options(&self) -> v2ce::stage1::learned::RuntimeOptions {
+        v2ce::stage1::learned::RuntimeOptions {
+            threads: self.threads,
+            device: self.device,
+            library: None,
+            cpu_arena: self.cpu_arena,
+        }
+    }
 }
 
 /// Stage 1 tier flags shared by `convert` and `run` (each overrides `[stage1]` and
@@ -707,12 +718,7 @@ fn model_import(args: ModelImportArgs) -> Result<()> {
 
 fn model_bench(args: ModelBenchArgs) -> Result<()> {
     let (w, h) = parse_size(&args.size)?;
-    let options = v2ce::stage1::learned::RuntimeOptions {
-        threads: args.threads,
-        device: args.device,
-        library: None,
-        cpu_arena: args.cpu_arena,
-    };
+    let options = args.runtime.options();
     let report = v2ce::stage1::learned::raw::bench(
         &args.model,
         (w as usize, h as usize),
@@ -727,12 +733,7 @@ fn model_bench(args: ModelBenchArgs) -> Result<()> {
 }
 
 fn model_run(args: ModelRunArgs) -> Result<()> {
-    let options = v2ce::stage1::learned::RuntimeOptions {
-        threads: args.threads,
-        device: args.device,
-        library: None,
-        cpu_arena: args.cpu_arena,
-    };
+    let options = args.runtime.options();
     let report = v2ce::stage1::learned::raw::run_npy(
         &args.model,
         &args.input_npy,

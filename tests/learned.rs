@@ -334,16 +334,19 @@ fn bad_checkpoints_are_clear_errors_and_leave_no_model() {
 #[test]
 fn a_missing_runtime_library_says_how_to_install_it() {
     let dir = common::temp_dir("learned-nolib");
-    let err = fails(
-        v2ce()
-            .env("ORT_DYLIB_PATH", dir.join("libonnxruntime.so.1.31.1"))
-            .args(["model", "run"])
-            .arg(dir.join("m.onnx"))
-            .arg("--input-npy")
-            .arg(dir.join("in.npy"))
-            .arg("--output-npy")
-            .arg(dir.join("out.npy")),
-    );
+    let run = || {
+        fails(
+            v2ce()
+                .env("ORT_DYLIB_PATH", dir.join("libonnxruntime.so.1.31.1"))
+                .args(["model", "run"])
+                .arg(dir.join("m.onnx"))
+                .arg("--input-npy")
+                .arg(dir.join("in.npy"))
+                .arg("--output-npy")
+                .arg(dir.join("out.npy")),
+        )
+    };
+    let err = run();
     assert!(err.contains("in.npy"), "{err}");
     // With an input, the library is the next thing missing.
     ndarray_npy::write_npy(
@@ -352,16 +355,7 @@ fn a_missing_runtime_library_says_how_to_install_it() {
     )
     .unwrap();
     std::fs::write(dir.join("m.onnx"), b"not a model").unwrap();
-    let err = fails(
-        v2ce()
-            .env("ORT_DYLIB_PATH", dir.join("libonnxruntime.so.1.31.1"))
-            .args(["model", "run"])
-            .arg(dir.join("m.onnx"))
-            .arg("--input-npy")
-            .arg(dir.join("in.npy"))
-            .arg("--output-npy")
-            .arg(dir.join("out.npy")),
-    );
+    let err = run();
     assert!(err.contains("ORT_DYLIB_PATH"), "{err}");
     assert!(!dir.join("out.npy").exists());
 }
@@ -412,16 +406,7 @@ fn tiny_model(path: &Path, op: &str, rank4: bool) {
         output: vec![tensor_value("voxels", FLOAT, &output)],
         ..Default::default()
     };
-    let model = ModelProto {
-        ir_version: Some(8),
-        opset_import: vec![OperatorSetIdProto {
-            domain: Some(String::new()),
-            version: Some(17),
-        }],
-        producer_name: Some("v2ce tests".into()),
-        graph: Some(graph),
-        ..Default::default()
-    };
+    let model = model(graph, "v2ce tests", Vec::new());
     let mut file = std::fs::File::create(path).unwrap();
     write_model(model, &mut file).unwrap();
 }
@@ -568,4 +553,63 @@ fn writing_voxels_needs_a_tier_that_makes_them() {
         .arg(dir.join("ev.csv")));
     let v: ArrayD<f32> = ndarray_npy::read_npy(dir.join("v.npy")).unwrap();
     assert_eq!(v.shape(), &[5, 20, 61, 83]);
+}
+
+#[test]
+fn geometries_crop_and_tile_the_resized_frames_consistently() {
+    ort_or_skip!("geometries_crop_and_tile_the_resized_frames_consistently");
+    let dir = common::temp_dir("learned-geometry");
+    let model = dir.join("relu.onnx");
+    tiny_model(&model, "Relu", false);
+    // Three 200 x 100 gray frames with structure everywhere.
+    let frames = dir.join("frames");
+    std::fs::create_dir_all(&frames).unwrap();
+    let mut bytes = Vec::new();
+    for i in 0..3u32 {
+        let img = image::GrayImage::from_fn(200, 100, |x, y| {
+            image::Luma([((x * 7 + y * 13 + i * 40 + (x * y) % 23) % 256) as u8])
+        });
+        bytes.push(img.clone().into_raw());
+        img.save(frames.join(format!("f{i}.png"))).unwrap();
+    }
+    let voxels = |geometry: &str| -> ArrayD<f32> {
+        let v = dir.join(format!("{geometry}.npy"));
+        ok(v2ce()
+            .arg("convert")
+            .arg(&frames)
+            .args(["--fps", "10", "--model"])
+            .arg(&model)
+            .args(["--geometry", geometry])
+            .arg("--write-voxels")
+            .arg(&v)
+            .arg("-o")
+            .arg(dir.join(format!("{geometry}.csv"))));
+        ndarray_npy::read_npy(&v).unwrap()
+    };
+    // Native: the PNG's own bytes through the toolbox's normalisation, exactly.
+    let native = voxels("native");
+    assert_eq!(native.shape(), &[2, 20, 100, 200]);
+    for (j, c) in [(0usize, 0usize), (0, 1), (1, 0), (1, 19)] {
+        let frame = &bytes[j + c % 2];
+        for (k, &b) in frame.iter().enumerate().step_by(37) {
+            let want = ((b as f32 / 255.0 - 0.153) / 0.165).max(0.0);
+            assert_eq!(
+                native[[j, c, k / 200, k % 200]],
+                want,
+                "interval {j} channel {c}"
+            );
+        }
+    }
+    // Resized to 260 rows: 520 columns; the centre crop and the panorama's tiles are parts of it.
+    let resize = voxels("resize");
+    assert_eq!(resize.shape(), &[2, 20, 260, 520]);
+    let pano = voxels("pano");
+    assert_eq!(pano, resize, "tiles at 0 and 174 assemble to the whole");
+    let center = voxels("center");
+    assert_eq!(center.shape(), &[2, 20, 260, 346]);
+    let x0 = 520 / 2 - 173;
+    let crop = resize
+        .slice(ndarray::s![.., .., .., x0..x0 + 346])
+        .to_owned();
+    assert_eq!(center, crop.into_dyn());
 }

@@ -119,7 +119,7 @@ def measure(args):
         sess = ort.InferenceSession(args.onnx, so, providers=["CPUExecutionProvider"])
 
         def call():
-            return sess.run(None, {"pairs": x})[0]
+            return sess.run(None, {sess.get_inputs()[0].name: x})[0]
         version = ort.__version__
     rss_loaded = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     t = time.perf_counter()

@@ -10,6 +10,10 @@ use std::io::Write;
 
 use super::write_counted;
 
+/// The ONNX operator set the project's graphs use.
+pub const OPSET: i64 = 17;
+/// The ONNX IR version written.
+pub const IR_VERSION: i64 = 8;
 /// `TensorProto.DataType.FLOAT`.
 pub const FLOAT: i32 = 1;
 /// `TensorProto.DataType.INT64`.
@@ -338,6 +342,27 @@ pub fn tensor_value(
     }
 }
 
+/// A model of one graph in the default domain at the project's opset and IR version.
+pub fn model(
+    graph: GraphProto,
+    producer: &str,
+    metadata_props: Vec<StringStringEntryProto>,
+) -> ModelProto {
+    ModelProto {
+        ir_version: Some(IR_VERSION),
+        opset_import: vec![OperatorSetIdProto {
+            domain: Some(String::new()),
+            version: Some(OPSET),
+        }],
+        producer_name: Some(producer.into()),
+        producer_version: Some(env!("CARGO_PKG_VERSION").into()),
+        model_version: Some(1),
+        graph: Some(graph),
+        metadata_props,
+        ..Default::default()
+    }
+}
+
 /// A metadata entry.
 pub fn metadata(key: &str, value: &str) -> StringStringEntryProto {
     StringStringEntryProto {
@@ -403,17 +428,7 @@ mod tests {
             output: vec![tensor_value("y", FLOAT, &[Err("batch"), Ok(3)])],
             ..Default::default()
         };
-        let model = ModelProto {
-            ir_version: Some(8),
-            opset_import: vec![OperatorSetIdProto {
-                domain: Some(String::new()),
-                version: Some(17),
-            }],
-            producer_name: Some("v2ce".into()),
-            graph: Some(graph),
-            metadata_props: vec![metadata("k", "v")],
-            ..Default::default()
-        };
+        let model = model(graph, "v2ce", vec![metadata("k", "v")]);
         let mut out = Vec::new();
         let n = write_model(model.clone(), &mut out).unwrap();
         assert_eq!(n as usize, out.len());

@@ -13,7 +13,7 @@
 use std::collections::{HashMap, HashSet};
 use std::path::Path;
 
-use super::onnx::{self, GraphProto, ModelProto, NodeProto, OperatorSetIdProto, TensorProto};
+use super::onnx::{self, GraphProto, ModelProto, NodeProto, TensorProto};
 use super::torch::TensorEntry;
 use super::{shape_string, ImportOptions, Tensor, TensorData};
 use crate::{Error, Result};
@@ -22,10 +22,7 @@ use crate::{Error, Result};
 pub const BN_EPS: f64 = 1e-5;
 /// The epsilon of the reference spectral norm's `n(z) = z / (|z| + eps)`.
 pub const SN_EPS: f64 = 1e-12;
-/// The ONNX operator set the graph uses.
-pub const OPSET: i64 = 17;
-/// The ONNX IR version written.
-pub const IR_VERSION: i64 = 8;
+pub use super::onnx::{IR_VERSION, OPSET};
 
 /// How a spectral-norm convolution's sigma is resolved from `weight_bar`, `weight_u`, `weight_v`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, clap::ValueEnum)]
@@ -688,20 +685,7 @@ impl Architecture {
             onnx::metadata("input_std", "0.165"),
             onnx::metadata("time_bins", &(self.pred.cout / 2).to_string()),
         ];
-        let model = ModelProto {
-            ir_version: Some(IR_VERSION),
-            opset_import: vec![OperatorSetIdProto {
-                domain: Some(String::new()),
-                version: Some(OPSET),
-            }],
-            producer_name: Some("v2ce".into()),
-            producer_version: Some(env!("CARGO_PKG_VERSION").into()),
-            domain: None,
-            model_version: Some(1),
-            doc_string: None,
-            graph: Some(graph),
-            metadata_props: metadata,
-        };
+        let model = onnx::model(graph, "v2ce", metadata);
         Ok(BuiltModel {
             model,
             spectral_norms: g.spectral_norms,

@@ -29,7 +29,7 @@ use crate::frame::Frame;
 use crate::interval::Interval;
 use crate::voxel::VoxelGrid;
 
-pub use preprocess::{Geometry, Layout};
+pub use preprocess::{Geometry, Layout, Tile};
 pub use runtime::{Device, Network, RuntimeOptions};
 
 use super::{SourceEncoding, Stage1, Stage1Batch, Stage1Stats};
@@ -311,11 +311,11 @@ impl LearnedStage1 {
         let channels = 2 * self.bins;
         let mut voxels = vec![0f32; run.keep * channels * oh * ow];
         let started = Instant::now();
-        for (x0, keep_from) in self.layout.tiles() {
+        for tile in self.layout.tiles() {
             self.input.clear();
             for pair in frames.windows(2) {
                 for (_, plane) in pair {
-                    self.layout.tile(plane, x0, &mut self.tile);
+                    self.layout.tile(plane, tile.input_x, &mut self.tile);
                     self.input.extend_from_slice(&self.tile);
                 }
             }
@@ -326,8 +326,9 @@ impl LearnedStage1 {
                     format!("{} channels per interval, expected {channels}", shape[2]),
                 ));
             }
-            // Copy the kept intervals' columns keep_from.. of this tile to x0 + keep_from...
+            // The kept intervals' columns keep_from.. of this tile go to output_x + keep_from...
             let plane = nh * nw;
+            let keep_from = tile.keep_from;
             for k in 0..run.keep {
                 let j = pairs - run.keep + k;
                 for c in 0..channels {
@@ -336,7 +337,7 @@ impl LearnedStage1 {
                         &mut voxels[(k * channels + c) * oh * ow..(k * channels + c + 1) * oh * ow];
                     for y in 0..nh {
                         let from = &src[y * nw + keep_from..(y + 1) * nw];
-                        let at = y * ow + x0 + keep_from;
+                        let at = y * ow + tile.output_x + keep_from;
                         dst[at..at + from.len()].copy_from_slice(from);
                     }
                 }
@@ -411,14 +412,13 @@ impl Stage1 for LearnedStage1 {
 
     fn describe(&self) -> String {
         format!(
-            "learned ({}, L={} stride {}, {:?} geometry, {})",
+            "learned ({}, L={} stride {}, {} geometry, {})",
             self.config.model.display(),
             self.config.window,
             self.config.stride,
-            self.config.geometry,
+            self.config.geometry.name(),
             self.network.provider()
         )
-        .to_lowercase()
     }
 }
 

@@ -39,6 +39,29 @@ pub enum Geometry {
     Pano,
 }
 
+impl Geometry {
+    /// The name as configs and flags spell it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Geometry::Native => "native",
+            Geometry::Resize => "resize",
+            Geometry::Center => "center",
+            Geometry::Pano => "pano",
+        }
+    }
+}
+
+/// One network run over part of a frame (see [`Layout::tiles`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Tile {
+    /// First column of the tile in the resized plane.
+    pub input_x: usize,
+    /// Column of the events' frame where the tile's output starts.
+    pub output_x: usize,
+    /// First column of the tile's output that is kept.
+    pub keep_from: usize,
+}
+
 /// The plane the network sees for one frame, and how its output maps back.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Layout {
@@ -95,9 +118,9 @@ impl Layout {
                     "stage1.learned",
                     format!(
                         "{sw} x {sh} resized to height {th} is {rw} wide, narrower than the \
-                         {cw} columns of geometry {:?} (the toolbox slices wrongly here); use \
+                         {cw} columns of geometry {} (the toolbox slices wrongly here); use \
                          geometry = \"resize\" or \"native\"",
-                        geometry
+                        geometry.name()
                     ),
                 ))
             }
@@ -124,25 +147,31 @@ impl Layout {
         self.net
     }
 
-    /// Column ranges of the resized plane run as tiles, and for each the columns of its output
-    /// kept (`(tile_start, keep_from)`: output columns `tile_start + keep_from ..` of the tile).
-    pub fn tiles(&self) -> Vec<(usize, usize)> {
+    /// The tiles the network runs on: the first column of each in the resized plane, where
+    /// its output goes in the events' frame, and the first of its output columns kept (the
+    /// columns before it are already covered by the tile before).
+    pub fn tiles(&self) -> Vec<Tile> {
         match self.geometry {
             Geometry::Pano => {
                 let (rw, cw) = (self.resized.0, self.net.0);
                 let n = rw.div_ceil(cw);
                 (0..n)
                     .map(|i| {
-                        if (i + 1) * cw <= rw {
-                            (i * cw, 0)
-                        } else {
-                            // The rightmost cw columns; only the ones not covered yet are new.
-                            (rw - cw, cw - (rw - i * cw))
+                        // The last tile is the rightmost cw columns; only the new ones are kept.
+                        let start = (i * cw).min(rw - cw);
+                        Tile {
+                            input_x: start,
+                            output_x: start,
+                            keep_from: i * cw - start,
                         }
                     })
                     .collect()
             }
-            _ => vec![(self.crop_x, 0)],
+            _ => vec![Tile {
+                input_x: self.crop_x,
+                output_x: 0,
+                keep_from: 0,
+            }],
         }
     }
 
@@ -297,8 +326,18 @@ mod tests {
         );
         // Pano: 462 wide -> tiles at 0 and 116, the second keeping its last 116 columns.
         let l = Layout::new(Geometry::Pano, (1920, 1080), 260, 346).unwrap();
-        assert_eq!(l.tiles(), vec![(0, 0), (116, 230)]);
+        let t = |input_x, output_x, keep_from| Tile {
+            input_x,
+            output_x,
+            keep_from,
+        };
+        assert_eq!(l.tiles(), vec![t(0, 0, 0), t(116, 116, 230)]);
         assert_eq!(l.output(), (462, 260));
+        // A width that divides: no overlap. The centre crop writes from column 0.
+        let l = Layout::new(Geometry::Pano, (692, 260), 260, 346).unwrap();
+        assert_eq!(l.tiles(), vec![t(0, 0, 0), t(346, 346, 0)]);
+        let l = Layout::new(Geometry::Center, (1920, 1080), 260, 346).unwrap();
+        assert_eq!(l.tiles(), vec![t(58, 0, 0)]);
         // Narrower than the crop: an error, not the toolbox's wrong slice.
         assert!(Layout::new(Geometry::Center, (320, 320), 260, 346).is_err());
         let l = Layout::new(Geometry::Native, (83, 61), 260, 346).unwrap();

@@ -145,7 +145,12 @@ pub fn bench(
     }
     let mut sorted = runs_s.clone();
     sorted.sort_by(f64::total_cmp);
-    let median_s = sorted[sorted.len() / 2];
+    let mid = sorted.len() / 2;
+    let median_s = if sorted.len() % 2 == 0 {
+        (sorted[mid - 1] + sorted[mid]) / 2.0
+    } else {
+        sorted[mid]
+    };
     Ok(BenchReport {
         width: w,
         height: h,
