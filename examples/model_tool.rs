@@ -1,7 +1,7 @@
 //! Checkpoint tools for checking the model import by hand (e.g. against PyTorch and onnxruntime):
 //!
 //! ```text
-//! cargo run --release --example model_tool -- seeded SEED OUT.pt [LOCATION]   # write the seeded checkpoint
+//! cargo run --release --example model_tool -- seeded SEED OUT.pt [LOCATION [BIAS_SHIFT]]   # the seeded checkpoint
 //! cargo run --release --example model_tool -- list CKPT                       # keys, shapes, sums
 //! cargo run --release --example model_tool -- copy CKPT OUT.pt [LOCATION]       # read, then write again
 //! cargo run --release --example model_tool -- import CKPT OUT.onnx [power-iteration|stored|exact] [keep-bn]
@@ -24,7 +24,19 @@ fn run(args: &[String]) -> v2ce::Result<()> {
             let seed: u64 = args.get(1).and_then(|s| s.parse().ok()).ok_or_else(usage)?;
             let out = args.get(2).ok_or_else(usage)?;
             let location = args.get(3).map_or("cpu", String::as_str);
-            let sd = model::seeded::state_dict(seed);
+            let mut sd = model::seeded::state_dict(seed);
+            // An optional shift of the prediction's bias: a negative one makes the voxels as
+            // sparse as real ones (the seeded network fires everywhere), for timing the
+            // pipeline with a realistic event rate.
+            if let Some(shift) = args.get(4).and_then(|s| s.parse::<f32>().ok()) {
+                for (key, tensor) in sd.iter_mut() {
+                    if key == "UNet.pred.conv3d.bias" {
+                        if let TensorData::F32(v) = &mut tensor.data {
+                            v.iter_mut().for_each(|b| *b += shift);
+                        }
+                    }
+                }
+            }
             torch::write_state_dict(Path::new(out), &sd, location)?;
             println!("wrote {} tensors to {out}", sd.len());
         }

@@ -262,14 +262,15 @@ pub fn run(
         counters: counters.clone(),
     };
     let policy = options.policy;
-    let cap = options.capacity;
-    let (cap_tx, cap_rx, s) = queue::<Captured>("capture", cap, policy);
+    // Stage 1 takes frames a window at a time: while it runs the network on one window, the
+    // next window's frames arrive, and its intervals then leave together. Every queue holds a
+    // whole window on top of its capacity, so a drop-oldest policy drops only what a tier too
+    // slow for the frame rate cannot take, never part of a window in flight.
+    let burst = options.capacity + stage1.stats().window.saturating_sub(1);
+    let (cap_tx, cap_rx, s) = queue::<Captured>("capture", burst, policy);
     counters.watch_queue(s);
-    let (seq_tx, seq_rx, s) = queue::<Captured>("sequenced", cap, policy);
+    let (seq_tx, seq_rx, s) = queue::<Captured>("sequenced", burst, policy);
     counters.watch_queue(s);
-    // A window's intervals leave Stage 1 at once: the queues after it hold a whole window on
-    // top, so a drop-oldest policy never evicts part of a window that just arrived.
-    let burst = cap + stage1.stats().window.saturating_sub(1);
     let (s1_tx, s1_rx, s) = queue::<Computed>("stage1", burst, policy);
     counters.watch_queue(s);
     let mut sink_txs = Vec::new();
