@@ -63,6 +63,7 @@ pub fn convert(
         max_frames,
         duration: None,
         tick: Duration::from_millis(250),
+        stop_flush_limit: None,
     };
     let mut on_tick = |s: &pipeline::stats::Snapshot| {
         progress(&ConvertReport {
@@ -97,19 +98,23 @@ pub fn convert(
 
 /// A Stage 1 that also writes every voxel it hands on to a `.npy` file: float32
 /// `(intervals, 2*C, H, W)` in V2CE's channel layout (`polarity * C + node`, ON first), one
-/// interval after the other as they are made. The file is written under a temporary name and
-/// renamed when the stream is finished, with the interval count in its header, so an
-/// interrupted run never leaves a file that looks complete.
+/// interval after the other as they are made. The file is written under a temporary name
+/// (`.npy.partial`); at the end of the stream its header gets the interval count and it is
+/// renamed, so a run that fails leaves no file that looks complete (the partial one is
+/// removed). Ctrl-C ends the stream early: like the event file, it then holds everything
+/// converted so far.
 pub struct VoxelTap {
     inner: Box<dyn Stage1>,
     path: std::path::PathBuf,
     partial: std::path::PathBuf,
-    file: Option<std::io::BufWriter<std::fs::File>>,
+    file: std::io::BufWriter<std::fs::File>,
     shape: Option<(usize, u16, u16)>,
     intervals: usize,
+    renamed: bool,
 }
 
-/// Bytes reserved for the `.npy` header, so the interval count can be filled in at the end.
+/// Bytes reserved for the `.npy` header (format 1.0: a multiple of 64), so the interval count
+/// can be filled in at the end.
 const NPY_HEADER: usize = 128;
 
 fn npy_header(intervals: usize, channels: usize, height: u16, width: u16) -> Vec<u8> {
@@ -128,19 +133,22 @@ fn npy_header(intervals: usize, channels: usize, height: u16, width: u16) -> Vec
 impl VoxelTap {
     /// Wraps `inner`; the voxels go to `path`.
     pub fn new(inner: Box<dyn Stage1>, path: &std::path::Path) -> Result<Self> {
+        use std::io::Write;
         let partial = path.with_extension("npy.partial");
         let file = std::fs::File::create(&partial).map_err(|e| Error::io(&partial, e))?;
         let mut file = std::io::BufWriter::new(file);
-        use std::io::Write;
-        file.write_all(&npy_header(0, 0, 0, 0))
-            .map_err(|e| Error::io(&partial, e))?;
+        if let Err(e) = file.write_all(&npy_header(0, 0, 0, 0)) {
+            let _ = std::fs::remove_file(&partial);
+            return Err(Error::io(&partial, e));
+        }
         Ok(VoxelTap {
             inner,
             path: path.to_path_buf(),
             partial,
-            file: Some(file),
+            file,
             shape: None,
             intervals: 0,
+            renamed: false,
         })
     }
 
@@ -158,34 +166,51 @@ impl VoxelTap {
             if *self.shape.get_or_insert(shape) != shape {
                 return Err(Error::invalid("--write-voxels", "the voxel size changed"));
             }
-            let Some(file) = self.file.as_mut() else {
-                return Err(Error::invalid("--write-voxels", "the file is closed"));
-            };
             let mut bytes = Vec::new();
             for v in grid.to_dense() {
                 bytes.extend_from_slice(&v.to_le_bytes());
             }
-            file.write_all(&bytes)
+            self.file
+                .write_all(&bytes)
                 .map_err(|e| Error::io(&self.partial, e))?;
             self.intervals += 1;
         }
         Ok(())
     }
 
-    fn close(&mut self) -> Result<()> {
-        use std::io::{Seek, Write};
-        let Some(file) = self.file.take() else {
-            return Ok(());
-        };
-        let mut file = file
-            .into_inner()
-            .map_err(|e| Error::io(&self.partial, e.into_error()))?;
+    /// Writes the header for what is in the file and gives the file its name.
+    fn complete(&mut self) -> Result<()> {
+        use std::io::{Seek, SeekFrom, Write};
         let (c, h, w) = self.shape.unwrap_or((0, 0, 0));
-        file.seek(std::io::SeekFrom::Start(0))
-            .and_then(|_| file.write_all(&npy_header(self.intervals, c, h, w)))
-            .and_then(|_| file.sync_all())
-            .map_err(|e| Error::io(&self.partial, e))?;
-        std::fs::rename(&self.partial, &self.path).map_err(|e| Error::io(&self.path, e))
+        let header = npy_header(self.intervals, c, h, w);
+        let at = if self.renamed {
+            &self.path
+        } else {
+            &self.partial
+        };
+        self.file
+            .flush()
+            .and_then(|()| {
+                let f = self.file.get_mut();
+                f.seek(SeekFrom::Start(0))?;
+                f.write_all(&header)?;
+                f.seek(SeekFrom::End(0))?;
+                f.sync_all()
+            })
+            .map_err(|e| Error::io(at, e))?;
+        if !self.renamed {
+            std::fs::rename(&self.partial, &self.path).map_err(|e| Error::io(&self.path, e))?;
+            self.renamed = true;
+        }
+        Ok(())
+    }
+}
+
+impl Drop for VoxelTap {
+    fn drop(&mut self) {
+        if !self.renamed {
+            let _ = std::fs::remove_file(&self.partial);
+        }
     }
 }
 
@@ -200,11 +225,13 @@ impl Stage1 for VoxelTap {
         self.write(&out[from..])
     }
 
+    /// The end of the stream or a break in it: the file is complete up to here (a later
+    /// interval goes on after it and rewrites the header).
     fn finish(&mut self, out: &mut Vec<crate::stage1::Stage1Batch>) -> Result<()> {
         let from = out.len();
         self.inner.finish(out)?;
         self.write(&out[from..])?;
-        self.close()
+        self.complete()
     }
 
     fn restart(&mut self) -> Result<()> {

@@ -183,6 +183,8 @@ pub fn options(run: &RunConfig) -> Options {
         max_frames: (run.max_frames > 0).then_some(run.max_frames),
         duration: (run.duration > 0.0).then(|| Duration::from_secs_f64(run.duration)),
         tick: Duration::from_secs_f64(run.stats_interval),
+        // The systemd unit gives a stop 20 s (TimeoutStopSec) for everything.
+        stop_flush_limit: Some(Duration::from_secs(8)),
     }
 }
 

@@ -112,8 +112,8 @@ struct RuntimeArgs {
     /// ONNX Runtime threads (0: one per core).
     #[arg(long, default_value_t = 0)]
     threads: usize,
-    /// Execution provider.
-    #[arg(long, value_enum, default_value_t = v2ce::stage1::learned::Device::Cpu)]
+    /// Execution provider: cpu, cuda, auto (CUDA when the library has it and it starts).
+    #[arg(long, value_enum, default_value_t = v2ce::stage1::learned::Device::Auto)]
     device: v2ce::stage1::learned::Device,
     /// Keep ONNX Runtime's CPU memory arena (off by default: half the peak memory).
     #[arg(long)]
@@ -144,7 +144,8 @@ struct TierArgs {
     /// Frame intervals per window of the learned tier (the network was trained on 16).
     #[arg(long)]
     window: Option<usize>,
-    /// New intervals per window (1..=window; less overlaps windows for a shorter wait).
+    /// New intervals per window (1..=window, default the window; less overlaps windows for a
+    /// shorter wait).
     #[arg(long)]
     stride: Option<usize>,
     /// How frames are fitted to the network: native, resize, center, pano.
@@ -170,8 +171,6 @@ impl TierArgs {
         }
         if let Some(v) = self.window {
             learned.window = v;
-            // A window shorter than the stride would skip intervals: follow it down.
-            learned.stride = learned.stride.min(v);
         }
         if let Some(v) = self.stride {
             learned.stride = v;
@@ -615,11 +614,11 @@ fn convert(args: ConvertArgs) -> Result<()> {
         w,
         h
     );
+    let fmt = args.encoding.format_for(&args.output)?;
+    let sink = v2ce::sink::file::FileSink::create(&args.output, fmt, w, h)?;
     if let Some(path) = &args.write_voxels {
         stage1 = Box::new(v2ce::convert::VoxelTap::new(stage1, path)?);
     }
-    let fmt = args.encoding.format_for(&args.output)?;
-    let sink = v2ce::sink::file::FileSink::create(&args.output, fmt, w, h)?;
     let sinks: Vec<Box<dyn v2ce::sink::Sink>> = vec![Box::new(sink)];
     let tty = std::io::stderr().is_terminal();
     let stop = v2ce::daemon::stop_on_signals()?;

@@ -357,26 +357,33 @@ fn a_missing_runtime_library_says_how_to_install_it() {
     std::fs::write(dir.join("m.onnx"), b"not a model").unwrap();
     let err = run();
     assert!(err.contains("ORT_DYLIB_PATH"), "{err}");
+    assert!(err.contains("pip install onnxruntime==1.31.1"), "{err}");
     assert!(!dir.join("out.npy").exists());
 }
 
-/// A tiny model with the V2CE interface for fast pipeline tests: each frame pair's two planes
-/// tiled to `2 * 10` channels, then `op` (`Relu`: non-negative voxels; `Log`: NaN where the
-/// normalised input is negative, as a broken model would give). With `rank4`, a model whose
-/// input is (batch, 2, height, width) instead.
-fn tiny_model(path: &Path, op: &str, rank4: bool) {
+/// The interface of a [`tiny_model`].
+#[derive(Clone, Copy, PartialEq)]
+enum Tiny {
+    /// V2CE's, every size dynamic but the channels.
+    V2ce,
+    /// V2CE's with a fixed number of pairs (an export without dynamic axes).
+    FixedPairs(i64),
+    /// (batch, 2, height, width): not a V2CE model.
+    Rank4,
+}
+
+/// A tiny model for fast pipeline tests: each frame pair's two planes tiled to `2 * 10`
+/// channels, then `op` (`Relu`: non-negative voxels that depend on their own pair alone; `Log`:
+/// NaN where the normalised input is negative, as a broken model would give).
+fn tiny_model(path: &Path, op: &str, interface: Tiny) {
     use v2ce::model::onnx::*;
-    let dims5 = |c: i64| {
-        vec![
-            Err("batch"),
-            Err("pairs"),
-            Ok(c),
-            Err("height"),
-            Err("width"),
-        ]
+    let pairs = match interface {
+        Tiny::FixedPairs(p) => Ok(p),
+        _ => Err("pairs"),
     };
+    let dims5 = |c: i64| vec![Err("batch"), pairs, Ok(c), Err("height"), Err("width")];
     type Dims<'a> = Vec<Result<i64, &'a str>>;
-    let (input, output, repeats): (Dims, Dims, Vec<i64>) = if rank4 {
+    let (input, output, repeats): (Dims, Dims, Vec<i64>) = if interface == Tiny::Rank4 {
         (
             vec![Err("batch"), Ok(2), Err("height"), Err("width")],
             vec![Err("batch"), Ok(20), Err("height"), Err("width")],
@@ -416,7 +423,7 @@ fn a_model_with_another_interface_is_refused_clearly() {
     ort_or_skip!("a_model_with_another_interface_is_refused_clearly");
     let dir = common::temp_dir("learned-rank4");
     let model = dir.join("rank4.onnx");
-    tiny_model(&model, "Relu", true);
+    tiny_model(&model, "Relu", Tiny::Rank4);
     let err = fails(
         v2ce()
             .arg("convert")
@@ -430,7 +437,7 @@ fn a_model_with_another_interface_is_refused_clearly() {
     assert!(!dir.join("ev.csv").exists());
     // A raw tensor of the wrong rank for a good model.
     let good = dir.join("relu.onnx");
-    tiny_model(&good, "Relu", false);
+    tiny_model(&good, "Relu", Tiny::V2ce);
     let input = dir.join("in.npy");
     ndarray_npy::write_npy(&input, &ArrayD::<f32>::zeros(IxDyn(&[1, 2, 4, 4]))).unwrap();
     let err = fails(
@@ -451,7 +458,7 @@ fn nan_from_a_model_is_counted_and_repaired() {
     ort_or_skip!("nan_from_a_model_is_counted_and_repaired");
     let dir = common::temp_dir("learned-nan");
     let model = dir.join("log.onnx");
-    tiny_model(&model, "Log", false);
+    tiny_model(&model, "Log", Tiny::V2ce);
     let events = dir.join("ev.csv");
     let err = ok(v2ce()
         .arg("convert")
@@ -487,7 +494,7 @@ fn the_daemon_runs_overlapping_windows_and_flushes_at_the_end() {
     ort_or_skip!("the_daemon_runs_overlapping_windows_and_flushes_at_the_end");
     let dir = common::temp_dir("learned-daemon");
     let model = dir.join("relu.onnx");
-    tiny_model(&model, "Relu", false);
+    tiny_model(&model, "Relu", Tiny::V2ce);
     let out = dir.join("ev.csv");
     let run = v2ce()
         .arg("run")
@@ -505,7 +512,7 @@ fn the_daemon_runs_overlapping_windows_and_flushes_at_the_end() {
         .arg(&out)
         .arg("--model")
         .arg(&model)
-        .args(["--window", "4", "--stride", "1", "--json"])
+        .args(["--window", "8", "--stride", "3", "--json"])
         .output()
         .unwrap();
     let err = String::from_utf8_lossy(&run.stderr);
@@ -515,12 +522,13 @@ fn the_daemon_runs_overlapping_windows_and_flushes_at_the_end() {
     assert_eq!(s1["tier"], "learned");
     assert_eq!(
         (s1["window"].as_u64(), s1["stride"].as_u64()),
-        (Some(4), Some(1))
+        (Some(8), Some(3))
     );
-    // 58 intervals: the first window hands on 4, then one window per frame hands on 1.
+    // 58 intervals: the first window hands on 8, then one every 3 frames hands on 3 (16
+    // windows, 48 intervals), and at the end a window hands on the 2 left.
     assert_eq!(s1["learned"]["intervals"], 58);
-    assert_eq!(s1["learned"]["windows"], 1 + 54);
-    assert_eq!(s1["learned"]["pairs_run"], 4 * 55);
+    assert_eq!(s1["learned"]["windows"], 1 + 16 + 1);
+    assert_eq!(s1["learned"]["pairs_run"], 8 * 18);
     let rec = v2ce::format::read_events(&out).unwrap();
     assert_eq!(
         rec.events.events().len() as u64,
@@ -542,6 +550,10 @@ fn writing_voxels_needs_a_tier_that_makes_them() {
     );
     assert!(err.contains("--mode voxels"), "{err}");
     assert!(!dir.join("v.npy").exists());
+    assert!(
+        !dir.join("v.npy.partial").exists(),
+        "a failed run left its partial file"
+    );
     // The physics tier in voxel mode writes them: one grid per interval.
     ok(v2ce()
         .arg("convert")
@@ -560,7 +572,7 @@ fn geometries_crop_and_tile_the_resized_frames_consistently() {
     ort_or_skip!("geometries_crop_and_tile_the_resized_frames_consistently");
     let dir = common::temp_dir("learned-geometry");
     let model = dir.join("relu.onnx");
-    tiny_model(&model, "Relu", false);
+    tiny_model(&model, "Relu", Tiny::V2ce);
     // Three 200 x 100 gray frames with structure everywhere.
     let frames = dir.join("frames");
     std::fs::create_dir_all(&frames).unwrap();
@@ -612,4 +624,59 @@ fn geometries_crop_and_tile_the_resized_frames_consistently() {
         .slice(ndarray::s![.., .., .., x0..x0 + 346])
         .to_owned();
     assert_eq!(center, crop.into_dyn());
+}
+
+/// The voxels `v2ce convert` writes for the fixture frames with `model` and extra flags.
+fn convert_voxels(model: &Path, tag: &str, flags: &[&str]) -> ArrayD<f32> {
+    let dir = common::temp_dir(&format!("learned-windows-{tag}"));
+    let v = dir.join("v.npy");
+    ok(v2ce()
+        .arg("convert")
+        .arg(fixtures().join("frames_61x83"))
+        .arg("--model")
+        .arg(model)
+        .args(flags)
+        .arg("--write-voxels")
+        .arg(&v)
+        .arg("-o")
+        .arg(dir.join("ev.csv")));
+    ndarray_npy::read_npy(&v).unwrap()
+}
+
+#[test]
+fn every_window_setting_hands_on_each_interval_once_in_order() {
+    ort_or_skip!("every_window_setting_hands_on_each_interval_once_in_order");
+    // With a model whose output for a pair depends on that pair alone, any plan must give the
+    // same voxels as the toolbox's: each interval once, in order, from the right pair.
+    let dir = common::temp_dir("learned-windows");
+    let model = dir.join("relu.onnx");
+    tiny_model(&model, "Relu", Tiny::V2ce);
+    let reference = convert_voxels(&model, "16", &[]);
+    assert_eq!(reference.shape(), &[58, 20, 61, 83]);
+    for (window, stride) in [("8", "3"), ("5", "5"), ("1", "1"), ("16", "7")] {
+        let tag = format!("{window}-{stride}");
+        let got = convert_voxels(&model, &tag, &["--window", window, "--stride", stride]);
+        assert!(got == reference, "window {window} stride {stride}");
+    }
+    // A model fixing 16 pairs on a stream of 9 frames: padded in front, the 8 real intervals.
+    let fixed = dir.join("fixed16.onnx");
+    tiny_model(&fixed, "Relu", Tiny::FixedPairs(16));
+    let got = convert_voxels(&fixed, "fixed", &["--max-frames", "9"]);
+    let want = reference
+        .slice(ndarray::s![..8, .., .., ..])
+        .to_owned()
+        .into_dyn();
+    assert!(got == want, "fixed-pairs model on a short stream");
+    // The same model refuses a window it cannot take.
+    let err = fails(
+        v2ce()
+            .arg("convert")
+            .arg(fixtures().join("frames_61x83"))
+            .arg("--model")
+            .arg(&fixed)
+            .args(["--window", "8"])
+            .arg("-o")
+            .arg(dir.join("ev.csv")),
+    );
+    assert!(err.contains("fixed number of pairs of 16"), "{err}");
 }

@@ -100,6 +100,11 @@ pub struct Options {
     pub duration: Option<Duration>,
     /// How often `on_tick` gets a snapshot.
     pub tick: Duration,
+    /// When the run is stopped by `stop` (a signal), Stage 1 flushes what it holds only if one
+    /// window is expected to take less than this (its median so far); `None`: always. A service
+    /// manager waits a bounded time for a stop, and a window of the learned tier on a CPU can
+    /// take longer.
+    pub stop_flush_limit: Option<Duration>,
 }
 
 impl Default for Options {
@@ -110,6 +115,7 @@ impl Default for Options {
             max_frames: None,
             duration: None,
             tick: Duration::from_secs(10),
+            stop_flush_limit: None,
         }
     }
 }
@@ -310,7 +316,8 @@ pub fn run(
                 .name("v2ce-stage1".into())
                 .spawn_scoped(scope, {
                     let stats = &stage1_stats;
-                    move || stage1_stage(seq_rx, s1_tx, stage1, ctx, stats)
+                    let limit = options.stop_flush_limit;
+                    move || stage1_stage(seq_rx, s1_tx, stage1, ctx, stats, limit)
                 })
                 .map_err(spawn_err)?,
         );
@@ -530,6 +537,7 @@ fn stage1_stage(
     mut stage1: Box<dyn Stage1>,
     ctx: &Ctx,
     stats: &Mutex<Stage1Stats>,
+    stop_flush_limit: Option<Duration>,
 ) {
     let mut generation = 0;
     let mut batches: Vec<Stage1Batch> = Vec::new();
@@ -577,7 +585,18 @@ fn stage1_stage(
             return;
         }
     }
-    // The end of the stream (or a stop): what is held still goes out.
+    // The end of the stream (or a stop): what is held still goes out, unless a stop must not
+    // wait for a slow window.
+    let s = stage1.stats();
+    let window = Duration::from_secs_f64(s.learned.window_ms_p50 / 1e3);
+    if ctx.stop.load(Ordering::Relaxed) && stop_flush_limit.is_some_and(|limit| window > limit) {
+        tracing::warn!(
+            "stopping: the intervals held for the next window are dropped (a window takes \
+             about {:.1} s, longer than a stop may wait)",
+            window.as_secs_f64()
+        );
+        return;
+    }
     let flushed = stage1.finish(&mut batches);
     publish(stage1.as_ref());
     if !send(&mut batches, &arrivals) {

@@ -59,8 +59,8 @@ pub struct LearnedConfig {
     pub model: PathBuf,
     /// Frame intervals per window (`L`; the network was trained on 16).
     pub window: usize,
-    /// New intervals per window (`1..=window`); less than `window` overlaps windows for a
-    /// shorter wait in live use.
+    /// New intervals per window (`1..=window`; 0: the window, no overlap); less than `window`
+    /// overlaps windows for a shorter wait in live use.
     pub stride: usize,
     /// How frames are fitted to the network.
     pub geometry: Geometry,
@@ -85,12 +85,12 @@ impl Default for LearnedConfig {
         LearnedConfig {
             model: PathBuf::new(),
             window: DEFAULT_WINDOW,
-            stride: DEFAULT_WINDOW,
+            stride: 0,
             geometry: Geometry::Native,
             height: 260,
             width: 346,
             threads: 0,
-            device: Device::Cpu,
+            device: Device::Auto,
             input: InputEncoding::Auto,
             ort_library: PathBuf::new(),
             cpu_arena: false,
@@ -107,13 +107,25 @@ impl LearnedConfig {
                 format!("{} intervals; need 1 to 256", self.window),
             ));
         }
-        if !(1..=self.window).contains(&self.stride) {
+        if self.stride > self.window {
             return Err(Error::invalid(
                 "stage1.learned.stride",
-                format!("{}; need 1 to the window ({})", self.stride, self.window),
+                format!(
+                    "{}; need 1 to the window ({}), or 0 for the window",
+                    self.stride, self.window
+                ),
             ));
         }
         Ok(())
+    }
+
+    /// New intervals per window: `stride`, or the window when it is 0.
+    pub fn stride(&self) -> usize {
+        if self.stride == 0 {
+            self.window
+        } else {
+            self.stride
+        }
     }
 
     /// The runtime options of this table.
@@ -132,8 +144,11 @@ impl LearnedConfig {
 pub struct LearnedStats {
     /// Windows run (a panorama's tiles count once).
     pub windows: u64,
-    /// Frame pairs fed to the network (overlapping windows feed some twice).
+    /// Frame pairs fed to the network (overlapping windows feed some twice, and each tile of a
+    /// panorama counts).
     pub pairs_run: u64,
+    /// Frames repeated in front of a window too short for a model that fixes its pair count.
+    pub frames_padded: u64,
     /// Intervals handed to Stage 2.
     pub intervals: u64,
     /// Output values that were NaN or infinite.
@@ -215,6 +230,18 @@ impl Planner {
     }
 }
 
+/// Bytes of working memory per pixel and frame pair of one window: measured at 346x260 with 16
+/// pairs (1.5 GB peak with the CPU arena off) and rounded up.
+const BYTES_PER_PAIR_PIXEL: f64 = 1200.0;
+
+/// The memory available to the process, from `/proc/meminfo` (`None` where it cannot be read).
+fn available_memory() -> Option<f64> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib * 1024.0)
+}
+
 /// The learned tier behind the [`Stage1`] trait.
 pub struct LearnedStage1 {
     network: Network,
@@ -226,13 +253,15 @@ pub struct LearnedStage1 {
     /// The newest frames: time and resized plane in `[0, 1]`.
     frames: VecDeque<(i64, Vec<f32>)>,
     stats: LearnedStats,
-    window_ms: Vec<f64>,
+    /// Inference time of each window, us (bounded whatever the run's length).
+    window_us: hdrhistogram::Histogram<u64>,
     input: Vec<f32>,
     tile: Vec<f32>,
 }
 
 impl LearnedStage1 {
-    /// Opens the model for frames of `size`; `bins` must match the model's `C`.
+    /// Opens the model for frames of `size`; `bins` must match the model's `C`. Refuses a
+    /// model whose fixed sizes do not fit, and a window that would not fit in memory.
     pub fn new(
         config: &LearnedConfig,
         bins: usize,
@@ -248,8 +277,38 @@ impl LearnedStage1 {
             ));
         }
         let layout = Layout::new(config.geometry, size, config.height, config.width)?;
+        let (nw, nh) = layout.net();
+        let (ow, oh) = layout.output();
+        let need = config.window as f64 * (nw * nh) as f64 * BYTES_PER_PAIR_PIXEL
+            + (config.window * 2 * bins * ow as usize * oh as usize * 4) as f64;
+        if let Some(free) = available_memory() {
+            if need > free {
+                return Err(Error::invalid(
+                    "stage1.learned",
+                    format!(
+                        "a window of {} pairs at {nw} x {nh} needs about {:.1} GB, {:.1} GB are \
+                         free; use a smaller frame (--size, geometry = \"resize\" or \"center\") \
+                         or a shorter window",
+                        config.window,
+                        need / 1e9,
+                        free / 1e9
+                    ),
+                ));
+            }
+        }
         let network = Network::open(&config.model, &config.runtime())?;
-        if let Some(c) = network.channels() {
+        let fixed = network.fixed_sizes();
+        let mismatch = |what: &str, fixed: usize, want: usize| {
+            Error::invalid(
+                "stage1.learned",
+                format!(
+                    "{} takes a fixed {what} of {fixed}, this run needs {want} (a model made by \
+                     `v2ce model import` takes any size)",
+                    config.model.display()
+                ),
+            )
+        };
+        if let Some(c) = fixed[2] {
             if c != 2 * bins {
                 return Err(Error::invalid(
                     "stage2.bins",
@@ -262,16 +321,16 @@ impl LearnedStage1 {
                 ));
             }
         }
-        if let Some(p) = network.pairs() {
+        for (axis, what, want) in [(0, "batch", 1), (3, "height", nh), (4, "width", nw)] {
+            if let Some(f) = fixed[axis] {
+                if f != want {
+                    return Err(mismatch(what, f, want));
+                }
+            }
+        }
+        if let Some(p) = fixed[1] {
             if p != config.window {
-                return Err(Error::invalid(
-                    "stage1.learned.window",
-                    format!(
-                        "{} takes exactly {p} pairs per window; set window = {p} (a model made \
-                         by `v2ce model import` takes any)",
-                        config.model.display()
-                    ),
-                ));
+                return Err(mismatch("number of pairs", p, config.window));
             }
         }
         let encoding = match config.input {
@@ -279,6 +338,8 @@ impl LearnedStage1 {
             InputEncoding::Srgb => SourceEncoding::Srgb,
             InputEncoding::Linear => SourceEncoding::Linear,
         };
+        let window_us = hdrhistogram::Histogram::new_with_bounds(1, 3_600_000_000, 3)
+            .map_err(|e| Error::invalid("histogram", e.to_string()))?;
         Ok(LearnedStage1 {
             stats: LearnedStats {
                 provider: network.provider(),
@@ -288,23 +349,31 @@ impl LearnedStage1 {
             layout,
             encoding,
             bins,
-            planner: Planner::new(config.window, config.stride),
+            planner: Planner::new(config.window, config.stride()),
             config: config.clone(),
             frames: VecDeque::new(),
-            window_ms: Vec::new(),
+            window_us,
             input: Vec::new(),
             tile: Vec::new(),
         })
     }
 
-    /// Runs the newest `run.frames` frames and appends the `run.keep` new intervals.
+    /// Runs the newest `run.frames` frames and appends the `run.keep` new intervals. A model that
+    /// fixes its pair count gets a short window (a stream, or a stretch between camera gaps,
+    /// shorter than one window) padded in front with copies of its first frame: still pairs,
+    /// whose outputs are not kept.
     fn run(&mut self, run: Run, out: &mut Vec<Stage1Batch>) -> Result<()> {
         let frames: Vec<&(i64, Vec<f32>)> = self
             .frames
             .iter()
             .skip(self.frames.len() - run.frames)
             .collect();
-        let pairs = run.frames - 1;
+        let pad = match self.network.pairs() {
+            Some(p) if p + 1 > run.frames => p + 1 - run.frames,
+            _ => 0,
+        };
+        self.stats.frames_padded += pad as u64;
+        let pairs = run.frames - 1 + pad;
         let (nw, nh) = self.layout.net();
         let (ow, oh) = self.layout.output();
         let (ow, oh) = (ow as usize, oh as usize);
@@ -313,45 +382,52 @@ impl LearnedStage1 {
         let started = Instant::now();
         for tile in self.layout.tiles() {
             self.input.clear();
-            for pair in frames.windows(2) {
+            let padded = std::iter::repeat_n(frames[0], pad).chain(frames.iter().copied());
+            let padded: Vec<&(i64, Vec<f32>)> = padded.collect();
+            for pair in padded.windows(2) {
                 for (_, plane) in pair {
                     self.layout.tile(plane, tile.input_x, &mut self.tile);
                     self.input.extend_from_slice(&self.tile);
                 }
             }
-            let (shape, values) = self.network.run(&self.input, [1, pairs, 2, nh, nw])?;
-            if shape[2] != channels {
-                return Err(Error::format(
-                    self.network.path(),
-                    format!("{} channels per interval, expected {channels}", shape[2]),
-                ));
-            }
-            // The kept intervals' columns keep_from.. of this tile go to output_x + keep_from...
-            let plane = nh * nw;
-            let keep_from = tile.keep_from;
-            for k in 0..run.keep {
-                let j = pairs - run.keep + k;
-                for c in 0..channels {
-                    let src = &values[(j * channels + c) * plane..(j * channels + c + 1) * plane];
-                    let dst =
-                        &mut voxels[(k * channels + c) * oh * ow..(k * channels + c + 1) * oh * ow];
-                    for y in 0..nh {
-                        let from = &src[y * nw + keep_from..(y + 1) * nw];
-                        let at = y * ow + tile.output_x + keep_from;
-                        dst[at..at + from.len()].copy_from_slice(from);
+            let path = self.network.path().to_path_buf();
+            self.network
+                .run_with(&self.input, [1, pairs, 2, nh, nw], |shape, values| {
+                    if shape[2] != channels {
+                        return Err(Error::format(
+                            &path,
+                            format!("{} channels per interval, expected {channels}", shape[2]),
+                        ));
                     }
-                }
-            }
+                    // The kept intervals' columns keep_from.. of this tile go to
+                    // output_x + keep_from.. of the events' frame.
+                    let plane = nh * nw;
+                    for k in 0..run.keep {
+                        let j = pairs - run.keep + k;
+                        for c in 0..channels {
+                            let src = &values[(j * channels + c) * plane..][..plane];
+                            let dst = &mut voxels[(k * channels + c) * oh * ow..][..oh * ow];
+                            for y in 0..nh {
+                                let from = &src[y * nw + tile.keep_from..(y + 1) * nw];
+                                let at = y * ow + tile.output_x + tile.keep_from;
+                                dst[at..at + from.len()].copy_from_slice(from);
+                            }
+                        }
+                    }
+                    Ok(())
+                })?;
             self.stats.pairs_run += pairs as u64;
         }
-        let ms = started.elapsed().as_secs_f64() * 1e3;
-        self.window_ms.push(ms);
+        let us = started.elapsed().as_micros().clamp(1, 3_600_000_000) as u64;
+        // Within the bounds just clamped to: recording cannot fail.
+        let _ = self.window_us.record(us);
         self.stats.windows += 1;
         self.stats.nonfinite += voxels.iter().filter(|v| !v.is_finite()).count() as u64;
         let size = channels * oh * ow;
+        let first = frames.len() - 1 - run.keep;
         for k in 0..run.keep {
-            let j = pairs - run.keep + k;
-            let interval = Interval::new(frames[j].0, frames[j + 1].0)?;
+            let (t0, t1) = (frames[first + k].0, frames[first + k + 1].0);
+            let interval = Interval::new(t0, t1)?;
             let grid = VoxelGrid::from_dense(
                 ow as u16,
                 oh as u16,
@@ -397,14 +473,14 @@ impl Stage1 for LearnedStage1 {
 
     fn stats(&self) -> Stage1Stats {
         let mut learned = self.stats.clone();
-        let mut ms = self.window_ms.clone();
-        ms.sort_by(f64::total_cmp);
-        learned.window_ms_p50 = ms.get(ms.len() / 2).copied().unwrap_or(0.0);
-        learned.window_ms_max = ms.last().copied().unwrap_or(0.0);
+        if !self.window_us.is_empty() {
+            learned.window_ms_p50 = self.window_us.value_at_quantile(0.5) as f64 / 1e3;
+            learned.window_ms_max = self.window_us.max() as f64 / 1e3;
+        }
         Stage1Stats {
             tier: "learned",
             window: self.config.window,
-            stride: self.config.stride,
+            stride: self.config.stride(),
             physics: Default::default(),
             learned,
         }
@@ -415,7 +491,7 @@ impl Stage1 for LearnedStage1 {
             "learned ({}, L={} stride {}, {} geometry, {})",
             self.config.model.display(),
             self.config.window,
-            self.config.stride,
+            self.config.stride(),
             self.config.geometry.name(),
             self.network.provider()
         )

@@ -250,10 +250,12 @@ impl SrgbInverse {
 
 /// Per output index along one axis: the first source index and the weight of the second.
 fn linear_taps(src: usize, dst: usize) -> Vec<(usize, usize, f32)> {
-    let scale = src as f32 / dst as f32;
+    // OpenCV's arithmetic: the scale in f64 as the inverse of dst / src, the coordinate rounded
+    // to f32, its floor and fraction in f32.
+    let scale = 1.0 / (dst as f64 / src as f64);
     (0..dst)
         .map(|d| {
-            let f = (d as f32 + 0.5) * scale - 0.5;
+            let f = ((d as f64 + 0.5) * scale - 0.5) as f32;
             let mut s = f.floor();
             let mut w = f - s;
             if s < 0.0 {

@@ -34,11 +34,11 @@ pub const INSTALL_HINT: &str = "python3 -m venv .venv && .venv/bin/pip install o
 #[serde(rename_all = "kebab-case")]
 pub enum Device {
     /// The CPU execution provider.
-    #[default]
     Cpu,
     /// CUDA, or an error when the library has no CUDA provider or no GPU is usable.
     Cuda,
-    /// CUDA when the library has it and it starts, else the CPU.
+    /// CUDA when the library has it and it starts, else the CPU (the default).
+    #[default]
     Auto,
 }
 
@@ -72,7 +72,15 @@ fn library_names(dir: &Path) -> Option<PathBuf> {
                 .is_some_and(|n| n == "libonnxruntime.so" || n.starts_with("libonnxruntime.so."))
         })
         .collect();
-    found.sort();
+    // The newest release by number (1.31.1 after 1.9.0), the plain name last.
+    let version = |p: &PathBuf| -> Vec<u64> {
+        p.file_name()
+            .and_then(|n| n.to_str())
+            .and_then(|n| n.strip_prefix("libonnxruntime.so."))
+            .map(|v| v.split('.').map(|x| x.parse().unwrap_or(0)).collect())
+            .unwrap_or_default()
+    };
+    found.sort_by_key(version);
     found.pop()
 }
 
@@ -120,6 +128,9 @@ pub fn search_path() -> Vec<PathBuf> {
     for p in &prefixes {
         dirs.extend(site_packages(p));
     }
+    if let Some(ld) = std::env::var_os("LD_LIBRARY_PATH") {
+        dirs.extend(std::env::split_paths(&ld));
+    }
     for d in [
         "/usr/local/lib",
         "/usr/lib",
@@ -128,9 +139,6 @@ pub fn search_path() -> Vec<PathBuf> {
         "/opt/onnxruntime/lib",
     ] {
         dirs.push(PathBuf::from(d));
-    }
-    if let Some(ld) = std::env::var_os("LD_LIBRARY_PATH") {
-        dirs.extend(std::env::split_paths(&ld));
     }
     dirs
 }
@@ -144,7 +152,11 @@ pub fn find_library(configured: Option<&Path>) -> Result<PathBuf> {
         }
         return Err(Error::invalid(
             "ONNX Runtime",
-            format!("ORT_DYLIB_PATH names {}, which is not a file", p.display()),
+            format!(
+                "ORT_DYLIB_PATH names {}, which is not a file; unset it to search, or install \
+                 the library with: {INSTALL_HINT}",
+                p.display()
+            ),
         ));
     }
     if let Some(p) = configured {
@@ -233,8 +245,7 @@ pub struct Network {
     input: String,
     path: PathBuf,
     provider: &'static str,
-    channels: Option<usize>,
-    pairs: Option<usize>,
+    fixed: [Option<usize>; 5],
 }
 
 impl Network {
@@ -258,6 +269,8 @@ impl Network {
             disable_cpu_arena(&mut builder)?;
         }
         let mut provider = "cpu";
+        // Without CUDA, for `auto` to fall back on when CUDA starts but the session cannot.
+        let cpu_builder = builder.clone();
         let cuda = ort::ep::CUDA::default();
         match options.device {
             Device::Cpu => {}
@@ -292,9 +305,20 @@ impl Network {
                 }
             }
         }
-        let session = builder.commit_from_file(path).map_err(|e| {
+        let cannot = |e: ort::Error| {
             Error::format(path, format!("ONNX Runtime cannot load this model: {e}"))
-        })?;
+        };
+        let session = match builder.commit_from_file(path) {
+            Ok(s) => s,
+            // The CUDA provider creates its device with the session (no GPU, an old driver).
+            Err(e) if options.device == Device::Auto && provider == "cuda" => {
+                tracing::warn!("CUDA could not run this model ({e}); running on the CPU");
+                provider = "cpu";
+                let mut b = cpu_builder;
+                b.commit_from_file(path).map_err(cannot)?
+            }
+            Err(e) => return Err(cannot(e)),
+        };
         let inputs = session.inputs();
         let outputs = session.outputs();
         if inputs.len() != 1 || outputs.is_empty() {
@@ -321,28 +345,30 @@ impl Network {
                 ),
             ));
         }
-        let pairs = din
-            .as_ref()
-            .and_then(|d| (d[1] > 0).then_some(d[1] as usize));
         let dout = dims(outputs[0].dtype());
-        let channels = match dout.as_deref() {
-            Some([_, _, c, _, _]) => (*c > 0).then_some(*c as usize),
-            _ => {
-                return Err(Error::format(
-                    path,
-                    format!(
-                        "output has shape {dout:?}; a V2CE model gives (batch, pairs, 2*C, height, width)"
-                    ),
-                ))
-            }
+        let Some([_, _, out_channels, _, _]) = dout.as_deref() else {
+            return Err(Error::format(
+                path,
+                format!(
+                    "output has shape {dout:?}; a V2CE model gives (batch, pairs, 2*C, height, width)"
+                ),
+            ));
         };
+        let known = |d: i64| (d > 0).then_some(d as usize);
+        let din = din.unwrap_or_default();
+        let fixed = [
+            known(din[0]),
+            known(din[1]),
+            known(*out_channels),
+            known(din[3]),
+            known(din[4]),
+        ];
         Ok(Network {
             input: inputs[0].name().to_string(),
             session,
             path: path.to_path_buf(),
             provider,
-            channels,
-            pairs,
+            fixed,
         })
     }
 
@@ -351,14 +377,15 @@ impl Network {
         self.provider
     }
 
-    /// Output channels (`2*C`) when the model declares them.
-    pub fn channels(&self) -> Option<usize> {
-        self.channels
+    /// The sizes the model fixes, as `(batch, pairs, output channels, height, width)`; `None`
+    /// where it takes any (a model made by `v2ce model import` fixes only the channels).
+    pub fn fixed_sizes(&self) -> [Option<usize>; 5] {
+        self.fixed
     }
 
-    /// Pairs per window when the model fixes them (a model imported by v2ce takes any).
+    /// Pairs per window when the model fixes them.
     pub fn pairs(&self) -> Option<usize> {
-        self.pairs
+        self.fixed[1]
     }
 
     /// The model file.
@@ -366,9 +393,14 @@ impl Network {
         &self.path
     }
 
-    /// Runs one batch: `input` holds `shape = [B, L, 2, H, W]` values; returns the output's shape
-    /// and values (row-major).
-    pub fn run(&mut self, input: &[f32], shape: [usize; 5]) -> Result<(Vec<usize>, Vec<f32>)> {
+    /// Runs one batch: `input` holds `shape = [B, L, 2, H, W]` values; `f` gets the output's
+    /// shape and values (row-major) where ONNX Runtime left them, without a copy.
+    pub fn run_with<T>(
+        &mut self,
+        input: &[f32],
+        shape: [usize; 5],
+        f: impl FnOnce(&[usize], &[f32]) -> Result<T>,
+    ) -> Result<T> {
         let expected: usize = shape.iter().product();
         if input.len() != expected || shape[2] != 2 {
             return Err(Error::invalid(
@@ -395,12 +427,18 @@ impl Network {
             || out_shape[1] != shape[1]
             || out_shape[3] != shape[3]
             || out_shape[4] != shape[4]
+            || out_shape.iter().product::<usize>() != values.len()
         {
             return Err(Error::format(
                 &self.path,
                 format!("output shape {out_shape:?} does not match the input's {shape:?}"),
             ));
         }
-        Ok((out_shape, values.to_vec()))
+        f(&out_shape, values)
+    }
+
+    /// [`Network::run_with`], returning a copy of the output's shape and values.
+    pub fn run(&mut self, input: &[f32], shape: [usize; 5]) -> Result<(Vec<usize>, Vec<f32>)> {
+        self.run_with(input, shape, |s, v| Ok((s.to_vec(), v.to_vec())))
     }
 }
