@@ -50,6 +50,17 @@ pub struct RunConfig {
     pub udp_format: UdpFormat,
     /// Most datagrams per second (0: as fast as the socket takes them).
     pub udp_rate: u32,
+    /// Largest datagram payload in bytes; 512 fits every common receiver whole (aestream
+    /// reads 512 bytes per datagram, SpiNNaker's SPIF listener 1024; more is cut off there).
+    pub udp_payload: usize,
+    /// When events leave over UDP: "event-time" (each at its own time plus `emit_delay_ms`,
+    /// spread as a sensor's) or "asap" (a frame interval's events in one burst).
+    pub emit: EmitMode,
+    /// How far behind the frames events leave at event time, milliseconds: one frame interval
+    /// (a learned window's stride of them) plus the processing time.
+    pub emit_delay_ms: f64,
+    /// Longest spread of due times in one datagram at event time, milliseconds.
+    pub emit_slice_ms: f64,
     /// Serve DV's AEDAT 4.0 network stream on this `HOST:PORT` (`""`: no TCP).
     pub tcp: String,
     /// Hold the source until the first TCP client has connected (nothing is streamed before).
@@ -83,6 +94,10 @@ impl Default for RunConfig {
             udp: "127.0.0.1:3333".into(),
             udp_format: UdpFormat::Spif,
             udp_rate: 0,
+            udp_payload: 512,
+            emit: EmitMode::EventTime,
+            emit_delay_ms: 100.0,
+            emit_slice_ms: 0.5,
             tcp: String::new(),
             wait_for_client: false,
             out: String::new(),
@@ -134,6 +149,31 @@ impl RunConfig {
         if !self.size.is_empty() {
             parse_size(&self.size)?;
         }
+        let bytes = self.udp_format.event_bytes();
+        if !(bytes..=65_507).contains(&self.udp_payload) {
+            return bad(
+                "run.udp_payload",
+                format!(
+                    "{} bytes (must hold one {bytes}-byte event and fit a datagram, 65507)",
+                    self.udp_payload
+                ),
+            );
+        }
+        if !(self.emit_delay_ms.is_finite() && (0.0..=60_000.0).contains(&self.emit_delay_ms)) {
+            return bad(
+                "run.emit_delay_ms",
+                format!("{} (must be 0 to 60000)", self.emit_delay_ms),
+            );
+        }
+        if !(self.emit_slice_ms.is_finite()
+            && self.emit_slice_ms > 0.0
+            && self.emit_slice_ms <= 1000.0)
+        {
+            return bad(
+                "run.emit_slice_ms",
+                format!("{} (must be > 0 and at most 1000)", self.emit_slice_ms),
+            );
+        }
         if self.wait_for_client && self.tcp.is_empty() {
             return bad("run.wait_for_client", "needs a tcp address".into());
         }
@@ -142,6 +182,19 @@ impl RunConfig {
         }
         Ok(())
     }
+}
+
+/// When the daemon's UDP output sends events.
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, serde::Serialize, clap::ValueEnum,
+)]
+#[serde(rename_all = "kebab-case")]
+pub enum EmitMode {
+    /// Each event at its own time plus a constant delay (`emit_delay_ms`).
+    #[default]
+    EventTime,
+    /// As fast as the socket takes them.
+    Asap,
 }
 
 /// Parses `WIDTHxHEIGHT` (each 1..=65535).

@@ -10,7 +10,7 @@ use serde::Serialize;
 use std::time::Duration;
 
 use crate::capture;
-use crate::config::{parse_size, Config, RunConfig};
+use crate::config::{parse_size, Config, EmitMode, RunConfig};
 use crate::error::{Error, Result};
 use crate::format::{Compression, Format};
 use crate::frame::resize::Resized;
@@ -19,7 +19,7 @@ use crate::pipeline::stats::{Latency, ProcessUsage, Snapshot};
 use crate::pipeline::{self, End, Options, Report, Source, Stages};
 use crate::sink::file::FileSink;
 use crate::sink::tcp::{TcpConfig, TcpSink};
-use crate::sink::udp::{UdpConfig, UdpSink};
+use crate::sink::udp::{Emission, UdpConfig, UdpSink};
 use crate::sink::Sink;
 
 /// Raises the returned flag on the first SIGINT or SIGTERM (the pipeline then flushes and
@@ -151,12 +151,27 @@ pub fn open_source(config: &Config) -> Result<(Source, String)> {
     ))
 }
 
-/// Opens the configured outputs for a `width x height` sensor.
-pub fn open_sinks(run: &RunConfig, width: u16, height: u16) -> Result<Vec<Box<dyn Sink>>> {
+/// Opens the configured outputs for a `width x height` sensor whose frame times run `speed`
+/// times faster than the wall clock (a file's replay speed; 1 for a camera).
+pub fn open_sinks(
+    run: &RunConfig,
+    width: u16,
+    height: u16,
+    speed: f64,
+) -> Result<Vec<Box<dyn Sink>>> {
     let mut sinks: Vec<Box<dyn Sink>> = Vec::new();
     if !run.udp.is_empty() {
         let mut c = UdpConfig::new(&run.udp, run.udp_format);
         c.max_datagrams_per_s = (run.udp_rate > 0).then_some(f64::from(run.udp_rate));
+        c.max_payload = run.udp_payload;
+        c.emission = match run.emit {
+            EmitMode::Asap => Emission::Asap,
+            EmitMode::EventTime => Emission::EventTime {
+                delay: Duration::from_secs_f64(run.emit_delay_ms / 1e3),
+                slice: Duration::from_secs_f64(run.emit_slice_ms / 1e3),
+                speed,
+            },
+        };
         sinks.push(Box::new(UdpSink::new(c)?));
     }
     if !run.tcp.is_empty() {
@@ -202,7 +217,7 @@ pub fn run(config: &Config, stop: &AtomicBool) -> Result<Report> {
     let (source, what) = open_source(config)?;
     let stage1 = crate::convert::build_stage1(config, source.first.as_ref())?;
     let (w, h) = stage1.output_size();
-    let sinks = open_sinks(&config.run, w, h)?;
+    let sinks = open_sinks(&config.run, w, h, source.pace.unwrap_or(1.0))?;
     let outputs: Vec<String> = sinks.iter().map(|s| s.describe()).collect();
     tracing::info!(
         "v2ce {}: {what} -> {} ({}x{}, Stage 1 {}, queues {} x{})",
@@ -392,7 +407,7 @@ pub fn bench(
     config.run.udp = format!("127.0.0.1:{port}");
     let (source, what) = open_source(&config)?;
     let stage1 = crate::convert::build_stage1(&config, source.first.as_ref())?;
-    let sinks = open_sinks(&config.run, size.0, size.1)?;
+    let sinks = open_sinks(&config.run, size.0, size.1, speed)?;
     let stages = Stages {
         stage1,
         sampler: config.stage2.sampler.build(config.stage2.seed),

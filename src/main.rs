@@ -202,6 +202,23 @@ struct RunArgs {
     /// Datagram format: spif, spif_timestamped, t64_x16_y16_on8, t32_x16_y15_on1.
     #[arg(long)]
     udp_format: Option<String>,
+    /// Largest UDP payload in bytes [config default: 512, which aestream and SpiNNaker's SPIF
+    /// listener read whole].
+    #[arg(long)]
+    udp_payload: Option<usize>,
+    /// Most UDP datagrams per second (0: unpaced) [config default: 0].
+    #[arg(long)]
+    udp_rate: Option<u32>,
+    /// When UDP events leave: event-time (each at its own time + the delay) or asap
+    /// [config default: event-time].
+    #[arg(long, value_enum)]
+    emit: Option<v2ce::config::EmitMode>,
+    /// How far behind the frames events leave at event time, ms [config default: 100].
+    #[arg(long)]
+    emit_delay_ms: Option<f64>,
+    /// Sensor preset of the physics tier: davis346, dvxplorer, ideal.
+    #[arg(long)]
+    preset: Option<String>,
     /// Serve DV's AEDAT 4.0 network stream on HOST:PORT.
     #[arg(long)]
     tcp: Option<String>,
@@ -470,6 +487,18 @@ fn run_config(args: &RunArgs) -> Result<Config> {
     if let Some(v) = &args.udp_format {
         run.udp_format = v2ce::sink::udp::UdpFormat::from_name(v)?;
     }
+    if let Some(v) = args.udp_payload {
+        run.udp_payload = v;
+    }
+    if let Some(v) = args.udp_rate {
+        run.udp_rate = v;
+    }
+    if let Some(v) = args.emit {
+        run.emit = v;
+    }
+    if let Some(v) = args.emit_delay_ms {
+        run.emit_delay_ms = v;
+    }
     if let Some(v) = &args.tcp {
         run.tcp = v.clone();
     }
@@ -504,7 +533,11 @@ fn run_config(args: &RunArgs) -> Result<Config> {
         config.stage1.seed = s;
         config.stage2.seed = s;
     }
+    if let Some(p) = &args.preset {
+        config.stage1.preset = v2ce::stage1::Preset::from_name(p)?;
+    }
     args.tier.apply(&mut config)?;
+    config.run.validate()?;
     Ok(config)
 }
 

@@ -193,6 +193,8 @@ pub struct Batch {
     pub events: Vec<Event>,
     /// When the frame that closed their interval was captured.
     pub at: Instant,
+    /// That frame's time, us.
+    pub end: i64,
 }
 
 impl Weight for Captured {
@@ -282,7 +284,10 @@ pub fn run(
     let mut sink_txs = Vec::new();
     let mut sink_ends = Vec::new();
     for (i, sink) in sinks.into_iter().enumerate() {
-        let (tx, rx, s) = queue::<Arc<Batch>>(&format!("sink{i}"), burst, policy);
+        // A sink that holds events back (emission at event time) keeps that long's batches
+        // queued, taking frames to come no closer than 10 ms (100 frames/s).
+        let held = (sink.holds_back().as_secs_f64() / 0.010).ceil() as usize;
+        let (tx, rx, s) = queue::<Arc<Batch>>(&format!("sink{i}"), burst + held, policy);
         counters.watch_queue(s);
         let index = counters.add_sink(sink.describe());
         sink_txs.push(tx);
@@ -615,6 +620,7 @@ fn stage2_stage(
     repaired: &Mutex<SampleStats>,
 ) {
     while let Some(item) = rx.recv() {
+        let end = item.batch.end();
         let events = match item.batch {
             Stage1Batch::Events { events, .. } => events,
             Stage1Batch::Voxels(grid, interval) => {
@@ -643,6 +649,7 @@ fn stage2_stage(
         let batch = Arc::new(Batch {
             events,
             at: item.at,
+            end,
         });
         let mut delivered = false;
         for tx in &sinks {
@@ -678,7 +685,11 @@ fn sink_stage(
             continue;
         }
         if !batch.events.is_empty() {
-            if let Err(e) = sink.send(&batch.events) {
+            let closed_by = crate::sink::ClosedBy {
+                t: batch.end,
+                captured: batch.at,
+            };
+            if let Err(e) = sink.send_closed(&batch.events, closed_by) {
                 failed = true;
                 fail(sink.as_ref(), "send failed", e);
                 continue;

@@ -5,9 +5,12 @@
 //! A network sink never blocks its caller on a receiver: what cannot be sent at once is dropped
 //! and counted in [`SinkStats`].
 
+pub mod emit;
 pub mod file;
 pub mod tcp;
 pub mod udp;
+
+use std::time::Instant;
 
 use crate::error::Result;
 use crate::event::Event;
@@ -31,6 +34,20 @@ pub struct SinkStats {
     pub clients: u64,
     /// Clients disconnected for being too slow or gone (TCP only).
     pub clients_dropped: u64,
+    /// Events sent later than their due time (emission at event time only; see [`emit`]).
+    pub events_late: u64,
+    /// Times the emission clock started over after a stall (emission at event time only).
+    pub reanchors: u64,
+}
+
+/// The frame that closed a batch of events: its time and the instant it was captured, which
+/// anchor a sink that emits events at their own times.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ClosedBy {
+    /// The frame's time, us.
+    pub t: i64,
+    /// When it was captured.
+    pub captured: Instant,
 }
 
 /// A destination for events.
@@ -40,6 +57,19 @@ pub trait Sink: Send {
 
     /// Takes a batch of events in time order (and after the previous batch).
     fn send(&mut self, events: &[Event]) -> Result<()>;
+
+    /// [`Sink::send`] for a batch whose interval was closed by `closed_by` (the pipeline's
+    /// call): a sink that emits events at their own times anchors its clock on it.
+    fn send_closed(&mut self, events: &[Event], closed_by: ClosedBy) -> Result<()> {
+        let _ = closed_by;
+        self.send(events)
+    }
+
+    /// How long the sink holds events back before they leave (emission at event time: its
+    /// delay); the pipeline gives its queue room for that many batches on top.
+    fn holds_back(&self) -> std::time::Duration {
+        std::time::Duration::ZERO
+    }
 
     /// Flushes and closes; the sink takes no more events.
     fn finish(&mut self) -> Result<()>;

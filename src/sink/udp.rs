@@ -12,14 +12,19 @@
 //!
 //! The socket is non-blocking: a datagram the kernel cannot take at once is dropped and counted,
 //! and a receiver that is gone (ICMP port unreachable) costs nothing but the count, so the
-//! caller never waits on a receiver. An optional pacing limit (datagrams per second) spaces the
-//! datagrams out for receivers that cannot take bursts; it sleeps the sending thread only, which
-//! in the daemon is the sink's own.
+//! caller never waits on a receiver. Datagrams leave either as fast as the kernel takes them
+//! ([`Emission::Asap`]) or each event at its own time ([`Emission::EventTime`], the daemon's
+//! default: a datagram holds the events due within one `slice` and leaves when the last of them
+//! is due, so none arrives early; see [`super::emit`]). For `spif`, which carries no
+//! timestamps, the arrival time is the event time. An optional pacing limit (datagrams per
+//! second) spaces the datagrams out further. Both sleep the sending thread only, which in the
+//! daemon is the sink's own.
 
 use std::net::{SocketAddr, ToSocketAddrs, UdpSocket};
 use std::time::{Duration, Instant};
 
-use super::{Sink, SinkStats};
+use super::emit::EmitClock;
+use super::{ClosedBy, Sink, SinkStats};
 use crate::error::{Error, Result};
 use crate::event::Event;
 
@@ -149,6 +154,38 @@ impl UdpFormat {
     }
 }
 
+/// When events leave.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Emission {
+    /// As fast as the socket takes them: a frame interval's events in one burst.
+    Asap,
+    /// Each event at its own time plus `delay`, the frames' times running `speed` times faster
+    /// than the wall clock; a datagram closes when full or when it would span more than
+    /// `slice`.
+    EventTime {
+        /// Behind the frames (see [`EmitClock`]).
+        delay: Duration,
+        /// Longest spread of due times in one datagram.
+        slice: Duration,
+        /// Replay speed (1 for a camera).
+        speed: f64,
+    },
+}
+
+/// Waits until `due`: sleeps while it is far (a sleep can overshoot by tens of microseconds,
+/// which over thousands of datagrams a second would add up to lateness), then yields until it
+/// has come, so a datagram never leaves early and rarely late.
+fn wait_until(due: Instant) {
+    const SPIN: Duration = Duration::from_micros(200);
+    let now = Instant::now();
+    if due > now + SPIN {
+        std::thread::sleep(due - now - SPIN);
+    }
+    while Instant::now() < due {
+        std::thread::yield_now();
+    }
+}
+
 /// Settings of a [`UdpSink`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct UdpConfig {
@@ -160,6 +197,8 @@ pub struct UdpConfig {
     pub max_payload: usize,
     /// Pacing: at most this many datagrams per second (`None`: as fast as the kernel takes them).
     pub max_datagrams_per_s: Option<f64>,
+    /// When events leave.
+    pub emission: Emission,
 }
 
 impl UdpConfig {
@@ -173,6 +212,7 @@ impl UdpConfig {
             format,
             max_payload: Self::DEFAULT_PAYLOAD,
             max_datagrams_per_s: None,
+            emission: Emission::Asap,
         }
     }
 }
@@ -187,6 +227,7 @@ pub struct UdpSink {
     /// When the next datagram may go, under pacing.
     next_slot: Instant,
     interval: Option<Duration>,
+    clock: Option<(EmitClock, Duration)>,
     stats: SinkStats,
 }
 
@@ -220,6 +261,19 @@ impl UdpSink {
         }
         .parse()
         .map_err(|e| bad(format!("{e}")))?;
+        let clock = match config.emission {
+            Emission::Asap => None,
+            Emission::EventTime {
+                delay,
+                slice,
+                speed,
+            } => {
+                if !(speed.is_finite() && speed > 0.0) {
+                    return Err(bad(format!("replay speed {speed} must be positive")));
+                }
+                Some((EmitClock::new(delay, speed), slice))
+            }
+        };
         let socket = UdpSocket::bind(local).map_err(|e| bad(e.to_string()))?;
         socket
             .set_nonblocking(true)
@@ -229,11 +283,35 @@ impl UdpSink {
             buf: Vec::with_capacity(config.max_payload),
             next_slot: Instant::now(),
             interval,
+            clock,
             config,
             socket,
             target,
             stats: SinkStats::default(),
         })
+    }
+
+    /// Sends one datagram of `chunk`, pacing first when asked; a datagram the kernel does not
+    /// take at once is dropped and counted.
+    fn datagram(&mut self, chunk: &[Event]) {
+        self.buf.clear();
+        for e in chunk {
+            self.config.format.encode(e, &mut self.buf);
+        }
+        self.pace();
+        match self.socket.send_to(&self.buf, self.target) {
+            Ok(_) => {
+                self.stats.messages_sent += 1;
+                self.stats.events_sent += chunk.len() as u64;
+                self.stats.bytes_sent += self.buf.len() as u64;
+            }
+            // Full send buffer, a receiver that is gone, a network that is down: drop and
+            // count, never wait.
+            Err(_) => {
+                self.stats.messages_dropped += 1;
+                self.stats.events_dropped += chunk.len() as u64;
+            }
+        }
     }
 
     fn pace(&mut self) {
@@ -252,7 +330,19 @@ impl UdpSink {
 
 impl Sink for UdpSink {
     fn describe(&self) -> String {
-        format!("udp {} ({})", self.target, self.config.format.name())
+        let when = match &self.clock {
+            Some((clock, _)) => format!(
+                "events at their own times + {:.0} ms",
+                clock.delay().as_secs_f64() * 1e3
+            ),
+            None => "as fast as possible".into(),
+        };
+        format!(
+            "udp {} ({}, {} B datagrams, {when})",
+            self.target,
+            self.config.format.name(),
+            self.config.max_payload
+        )
     }
 
     fn send(&mut self, events: &[Event]) -> Result<()> {
@@ -269,27 +359,69 @@ impl Sink for UdpSink {
                 ),
             ));
         }
-        for chunk in events.chunks(self.per_datagram) {
-            self.buf.clear();
-            for e in chunk {
-                self.config.format.encode(e, &mut self.buf);
+        if self.clock.is_none() {
+            for chunk in events.chunks(self.per_datagram) {
+                self.datagram(chunk);
             }
-            self.pace();
-            match self.socket.send_to(&self.buf, self.target) {
-                Ok(_) => {
-                    self.stats.messages_sent += 1;
-                    self.stats.events_sent += chunk.len() as u64;
-                    self.stats.bytes_sent += self.buf.len() as u64;
+            return Ok(());
+        }
+        if let (Some((clock, _)), Some(first)) = (self.clock.as_mut(), events.first()) {
+            // Without the closing frame: anchored on the first event, now.
+            clock.anchor(first.t, Instant::now());
+        }
+        let mut i = 0;
+        while i < events.len() {
+            let Some((clock, slice)) = self.clock.as_mut() else {
+                break;
+            };
+            let slice = *slice;
+            let Some(first_due) = clock.due_at(events[i].t, Instant::now()) else {
+                break;
+            };
+            // The events due within one slice of the first, as many as a datagram holds.
+            let mut j = i + 1;
+            let mut last_due = first_due;
+            while j < events.len() && j - i < self.per_datagram {
+                match clock.due(events[j].t) {
+                    Some(d) if d <= first_due + slice => last_due = d,
+                    _ => break,
                 }
-                // Full send buffer, a receiver that is gone, a network that is down: drop and
-                // count, never wait.
-                Err(_) => {
-                    self.stats.messages_dropped += 1;
-                    self.stats.events_dropped += chunk.len() as u64;
-                }
+                j += 1;
             }
+            let reanchors = clock.reanchors;
+            wait_until(last_due);
+            let sent_at = Instant::now();
+            self.stats.reanchors = reanchors;
+            // Late: sent more than a slice (and a millisecond of scheduling) after its time.
+            if sent_at > first_due + slice + Duration::from_millis(1) {
+                let late_from = sent_at - slice - Duration::from_millis(1);
+                let clock = self.clock.as_ref().map(|c| &c.0);
+                self.stats.events_late += events[i..j]
+                    .iter()
+                    .filter(|e| {
+                        clock
+                            .and_then(|c| c.due(e.t))
+                            .is_some_and(|d| d < late_from)
+                    })
+                    .count() as u64;
+            }
+            self.datagram(&events[i..j]);
+            i = j;
         }
         Ok(())
+    }
+
+    fn holds_back(&self) -> Duration {
+        self.clock
+            .as_ref()
+            .map_or(Duration::ZERO, |(clock, _)| clock.delay())
+    }
+
+    fn send_closed(&mut self, events: &[Event], closed_by: ClosedBy) -> Result<()> {
+        if let Some((clock, _)) = self.clock.as_mut() {
+            clock.anchor(closed_by.t, closed_by.captured);
+        }
+        self.send(events)
     }
 
     fn finish(&mut self) -> Result<()> {
@@ -383,6 +515,83 @@ mod tests {
         assert_eq!(s.events_sent + s.events_dropped, 100_000);
         // 1000 events per call, 368 per datagram: 3 datagrams a call.
         assert_eq!(s.messages_sent + s.messages_dropped, 300);
+    }
+
+    /// Sends `events` through an event-time sink anchored at `captured` for frame time 0 and
+    /// returns what arrived: each datagram's arrival instant and events.
+    fn emit_at_event_time(
+        events: &[Event],
+        captured: Instant,
+        delay: Duration,
+    ) -> (Vec<(Instant, Vec<Event>)>, SinkStats) {
+        let rx = UdpSocket::bind("127.0.0.1:0").unwrap();
+        rx.set_read_timeout(Some(Duration::from_millis(300)))
+            .unwrap();
+        let mut config = UdpConfig::new(
+            &rx.local_addr().unwrap().to_string(),
+            UdpFormat::T64X16Y16On8,
+        );
+        config.max_payload = 512;
+        config.emission = Emission::EventTime {
+            delay,
+            slice: Duration::from_micros(500),
+            speed: 1.0,
+        };
+        let receiver = std::thread::spawn(move || {
+            let mut got = Vec::new();
+            let mut buf = [0u8; 2048];
+            while let Ok(n) = rx.recv(&mut buf) {
+                let at = Instant::now();
+                let mut evs = Vec::new();
+                UdpFormat::T64X16Y16On8.decode(&buf[..n], &mut evs);
+                got.push((at, evs));
+            }
+            got
+        });
+        let mut sink = UdpSink::new(config).unwrap();
+        sink.send_closed(events, ClosedBy { t: 0, captured })
+            .unwrap();
+        let stats = sink.stats();
+        (receiver.join().unwrap(), stats)
+    }
+
+    #[test]
+    fn at_event_time_no_event_arrives_early_and_a_datagram_spans_one_slice() {
+        let events: Vec<Event> = (0..600)
+            .map(|i| Event::new(i * 100, (i % 300) as u16, 7, i % 2 == 0))
+            .collect();
+        let start = Instant::now();
+        let delay = Duration::from_millis(20);
+        let (got, stats) = emit_at_event_time(&events, start, delay);
+        assert_eq!(stats.events_sent, 600);
+        let mut all = Vec::new();
+        for (at, evs) in &got {
+            let (first, last) = (evs[0].t, evs[evs.len() - 1].t);
+            // Due times within one slice; none arrives before it is due.
+            assert!(last - first <= 500, "{first}..{last}");
+            let due = start + delay + Duration::from_micros(last as u64);
+            assert!(*at >= due, "event at {last} us arrived early");
+            assert!(evs.len() <= 512 / 13);
+            all.extend_from_slice(evs);
+        }
+        assert_eq!(all, events, "every event once, in order");
+    }
+
+    #[test]
+    fn late_events_go_at_once_counted_and_a_stall_reanchors() {
+        let events: Vec<Event> = (0..200).map(|i| Event::new(i * 100, 1, 2, true)).collect();
+        // Due 0.48 s ago and before: all late, sent at once, in order.
+        let past = Instant::now() - Duration::from_millis(500);
+        let (got, stats) = emit_at_event_time(&events, past, Duration::from_millis(20));
+        assert_eq!(stats.events_late, 200);
+        assert_eq!(stats.reanchors, 0);
+        let all: Vec<Event> = got.into_iter().flat_map(|(_, e)| e).collect();
+        assert_eq!(all, events);
+        // Due 5 s ago: the clock starts over on the first event, so the rest are on time again.
+        let stalled = Instant::now() - Duration::from_secs(5);
+        let (_, stats) = emit_at_event_time(&events, stalled, Duration::from_millis(20));
+        assert_eq!(stats.reanchors, 1);
+        assert_eq!(stats.events_sent, 200);
     }
 
     #[test]
