@@ -297,8 +297,8 @@ struct TranscodeArgs {
 /// How an output file is encoded, beyond what its extension says.
 #[derive(Args)]
 struct EncodingArgs {
-    /// EVT version of a .raw output.
-    #[arg(long, value_parser = ["2", "3"], default_value = "3")]
+    /// EVT version of a .raw output (2 by default: some readers mis-time EVT 3.0).
+    #[arg(long, value_parser = ["2", "3"], default_value = "2")]
     evt: String,
     /// Packet compression of an .aedat4 output: lz4, zstd, zstd-high or none.
     #[arg(long, default_value = "lz4")]

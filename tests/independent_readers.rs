@@ -1,4 +1,5 @@
-//! Third-party readers (faery, aedat, dv-processing from PyPI) read back what v2ce writes.
+//! Third-party readers (faery, aedat, dv-processing, aestream, expelliarmus from PyPI) read back
+//! what v2ce writes.
 //!
 //! The Python side is `tests/python/crosscheck.py`, run with the interpreter in `V2CE_PYTHON`
 //! or the project's `.venv` (which `.ci/run` creates). Without one these tests print why they
@@ -92,7 +93,7 @@ fn files_we_write_are_read_back_by_faery_aedat_and_dv_processing() {
             (
                 "lz4.aedat4",
                 Format::Aedat4(Compression::Lz4),
-                &["faery", "aedat", "dv"][..],
+                &["faery", "aedat", "dv", "aestream"][..],
             ),
             (
                 "zstd.aedat4",
@@ -104,13 +105,22 @@ fn files_we_write_are_read_back_by_faery_aedat_and_dv_processing() {
                 Format::Aedat4(Compression::None),
                 &["faery", "aedat", "dv"],
             ),
-            ("e2.raw", Format::Evt2, &["faery"]),
+            // The default .raw: expelliarmus reads it as faery does (both mis-time EVT 3.0).
+            ("e2.raw", Format::Evt2, &["faery", "expelliarmus"]),
             ("e3.raw", Format::Evt3, &["faery"]),
             ("e.csv", Format::Csv, &["faery"]),
         ] {
             let path = dir.join(format!("{name}-{file}"));
             write_all(&path, format, w, h, events);
             for reader in readers {
+                // The sparse stream (one event every 70 s, over 5 hours) defeats two readers
+                // where faery, aedat and dv-processing agree with us: aestream 0.6.4 returns
+                // garbage from its 255th event on, and expelliarmus 1.1.12 does not follow
+                // EVT 2.0's 34-bit time across its wrap (4.8 hours). They are held to the
+                // realistic stream.
+                if matches!(*reader, "aestream" | "expelliarmus") && name == "sparse" {
+                    continue;
+                }
                 check_file(&py, reader, &path, &expected, offset(format, events));
             }
         }

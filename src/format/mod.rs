@@ -114,8 +114,10 @@ impl Format {
     pub fn for_output(path: &Path, evt: Option<u8>, compression: Compression) -> Result<Self> {
         match (extension(path).as_str(), evt) {
             ("aedat4", _) => Ok(Format::Aedat4(compression)),
-            ("raw", Some(2)) => Ok(Format::Evt2),
-            ("raw", Some(3) | None) => Ok(Format::Evt3),
+            // EVT 2.0 unless asked: two common readers (aestream 0.6.4, expelliarmus 1.1.12)
+            // mis-time EVT 3.0, and every RAW reader reads EVT 2.0 right.
+            ("raw", Some(2) | None) => Ok(Format::Evt2),
+            ("raw", Some(3)) => Ok(Format::Evt3),
             ("raw", Some(v)) => Err(Error::invalid(
                 "EVT version",
                 format!("{v} (expected 2 or 3)"),

@@ -4,7 +4,8 @@ Run by the Rust integration tests (tests/independent_readers.rs) with the projec
 environment; each mode compares what a third-party reader gets with an expected CSV
 (`t_us,x,y,on`) and exits 0 on an exact match, 1 on a mismatch, 2 on a timeout.
 
-    crosscheck.py file READER PATH EXPECTED.csv [T_OFFSET]   READER: faery | aedat | dv
+    crosscheck.py file READER PATH EXPECTED.csv [T_OFFSET]   READER: faery | aedat | dv |
+                                                               aestream | expelliarmus
     crosscheck.py udp FORMAT PORT EXPECTED.csv WIDTH HEIGHT    FORMAT: t64_x16_y16_on8 |
                                                                t32_x16_y15_on1 | spif
     crosscheck.py tcp PORT EXPECTED.csv
@@ -79,6 +80,35 @@ def read_dv(path):
             e = batch.numpy()
             parts.append(columns(e["timestamp"], e["x"], e["y"], e["polarity"]))
     return np.concatenate(parts) if parts else np.zeros((0, 4), np.int64)
+
+
+def read_aestream(path):
+    """aestream 0.6.4's file reader (AEDAT 4.0; it reads every .raw as EVT 3.0, which fails on
+    EVT 2.0 files, Prophesee's own sample included, and mis-times EVT 3.0)."""
+    import aestream
+
+    e = aestream.FileInput(path, (1024, 1024)).load()
+    return columns(e["timestamp"], e["x"], e["y"], e["polarity"])
+
+
+def read_expelliarmus(path):
+    """expelliarmus (tonic's RAW reader): the encoding from the file's `% evt` header."""
+    import expelliarmus
+
+    with open(path, "rb") as f:
+        head = f.read(4096).decode("latin-1")
+    encoding = "evt3" if "% evt 3" in head else "evt2"
+    e = expelliarmus.Wizard(encoding=encoding).read(path)
+    return columns(e["t"], e["x"], e["y"], e["p"])
+
+
+READERS = {
+    "faery": read_faery,
+    "aedat": read_aedat,
+    "dv": read_dv,
+    "aestream": read_aestream,
+    "expelliarmus": read_expelliarmus,
+}
 
 
 def watchdog(seconds, what):
@@ -195,7 +225,7 @@ def main(argv):
         reader, path, want = argv[2], argv[3], expected(argv[4])
         offset = int(argv[5]) if len(argv) > 5 else 0
         watchdog(120, f"{reader} reading {path}")
-        got = {"faery": read_faery, "aedat": read_aedat, "dv": read_dv}[reader](path)
+        got = READERS[reader](path)
         got[:, 0] += offset
         return compare(got, want, f"{reader} reading {os.path.basename(path)}")
     if mode == "udp":
