@@ -51,7 +51,7 @@ use crate::stage1::{Stage1, Stage1Batch, Stage1Stats};
 use crate::stage2::{SampleStats, Sampler};
 use clock::{sleep_unless, Pacer};
 use queue::{queue, QueuePolicy, QueueRx, QueueTx, Weight};
-use stats::{Counters, Snapshot};
+use stats::{Counters, Snapshot, Timing};
 
 /// Opens the source again (a camera after a failure, a file to loop).
 pub type Reopen = Box<dyn FnMut() -> Result<Box<dyn FrameSource>> + Send>;
@@ -373,7 +373,7 @@ pub fn run(
     let repaired = repaired.into_inner().unwrap_or_else(|e| e.into_inner());
     Ok(Report {
         end,
-        stats: counters.snapshot(),
+        stats: counters.final_snapshot(),
         stage1,
         repaired,
         first_t,
@@ -405,6 +405,9 @@ fn capture_stage(
     let mut generation = 0u64;
     let (mut offset, mut period, mut realign) = (0i64, 0i64, false);
     let mut last_t: Option<i64> = None;
+    // The replay clock's speed (cameras: 1); unpaced files have no clock to lag behind.
+    let clock_speed = if live { Some(1.0) } else { pace };
+    let mut lag_anchor: Option<(i64, Instant)> = None;
     loop {
         if ctx.stopping() {
             return End::Stopped;
@@ -441,9 +444,21 @@ fn capture_stage(
                 }
                 frames += 1;
                 Counters::bump(&ctx.counters.frames_in);
+                let at = Instant::now();
+                // How far the capture is behind the frame's own time on the source's clock
+                // (anchored on its first frame; a camera's clock runs at 1x).
+                if let Some(speed) = clock_speed {
+                    let (t0, a0) = *lag_anchor.get_or_insert((frame.t, at));
+                    let due = a0
+                        + Duration::from_secs_f64(
+                            ((frame.t - t0).max(0) as f64 / 1e6 / speed).min(1e9),
+                        );
+                    ctx.counters
+                        .record(Timing::CaptureLag, at.saturating_duration_since(due));
+                }
                 let item = Captured {
                     frame,
-                    at: Instant::now(),
+                    at,
                     generation,
                 };
                 if tx.push(item).is_err() {
@@ -489,6 +504,7 @@ fn capture_stage(
                     }
                 };
                 generation += 1;
+                lag_anchor = None;
                 Counters::bump(&ctx.counters.source_restarts);
                 if let Some(p) = pacer.as_mut() {
                     *p = Pacer::new(pace.unwrap_or(1.0));
@@ -646,6 +662,7 @@ fn stage2_stage(
         ctx.counters
             .events_out
             .fetch_add(events.len() as u64, Ordering::Relaxed);
+        ctx.counters.record(Timing::Processing, item.at.elapsed());
         let batch = Arc::new(Batch {
             events,
             at: item.at,
@@ -680,6 +697,7 @@ fn sink_stage(
         }
     };
     while let Some(batch) = rx.recv() {
+        let received = Instant::now();
         if failed {
             // Drained, so the stages upstream never wait on a dead output.
             continue;
@@ -695,6 +713,7 @@ fn sink_stage(
                 continue;
             }
         }
+        ctx.counters.record(Timing::Emission, received.elapsed());
         ctx.counters.record_latency(batch.at.elapsed());
         ctx.counters.update_sink(index, sink.stats(), None);
     }
@@ -917,5 +936,92 @@ mod tests {
         assert_eq!(report.last_t, Some(24 * 5_000));
         let events = got.lock().unwrap();
         assert!(events.windows(2).all(|w| w[0].t <= w[1].t));
+    }
+}
+
+#[cfg(test)]
+mod timing_tests {
+    use super::*;
+    use crate::frame::synthetic::SceneSource;
+    use crate::sink::SinkStats;
+
+    /// Takes everything, keeps nothing.
+    struct Null(SinkStats);
+
+    impl Sink for Null {
+        fn describe(&self) -> String {
+            "null".into()
+        }
+        fn send(&mut self, events: &[Event]) -> Result<()> {
+            self.0.events_in += events.len() as u64;
+            Ok(())
+        }
+        fn finish(&mut self) -> Result<()> {
+            Ok(())
+        }
+        fn stats(&self) -> SinkStats {
+            self.0
+        }
+    }
+
+    /// Frames 5 ms apart that take 30 ms each to read: a source slower than real time.
+    struct Slow(SceneSource);
+
+    impl FrameSource for Slow {
+        fn size(&self) -> (u16, u16) {
+            self.0.size()
+        }
+        fn next_frame(&mut self) -> Result<Option<Frame>> {
+            std::thread::sleep(Duration::from_millis(30));
+            self.0.next_frame()
+        }
+        fn describe(&self) -> String {
+            "slow".into()
+        }
+    }
+
+    fn run_paced(source: Box<dyn FrameSource>) -> Report {
+        let config = crate::config::Config::default();
+        let size = source.size();
+        let stages = Stages {
+            stage1: crate::stage1::build(&config.stage1, 10, size, Default::default()).unwrap(),
+            sampler: config.stage2.sampler.build(0),
+            sinks: vec![Box::new(Null(SinkStats::default()))],
+        };
+        let source = Source {
+            pace: Some(1.0),
+            ..Source::file(source)
+        };
+        let options = Options {
+            tick: Duration::from_secs(3600),
+            ..Options::default()
+        };
+        run(
+            source,
+            stages,
+            &options,
+            &AtomicBool::new(false),
+            &mut |_| {},
+        )
+        .unwrap()
+    }
+
+    #[test]
+    fn a_source_slower_than_real_time_shows_as_capture_lag() {
+        let scene = SceneSource::moving_edge(32, 24, 200.0, 20, 2.0, 1500.0, (0.1, 0.8));
+        let report = run_paced(Box::new(Slow(scene)));
+        let s = &report.stats;
+        assert_eq!(s.frames_in, 20);
+        // The 20th frame is due 95 ms after the first and read at least 570 ms after it.
+        assert!(
+            s.capture_lag_total.max_ms >= 400.0,
+            "{:?}",
+            s.capture_lag_total
+        );
+        assert_eq!(s.capture_lag_total.count, 20);
+        assert_eq!(s.processing_total.count, 19);
+        // The final report's rates cover the whole run.
+        assert!((s.frames_per_s * s.uptime_s - s.frames_in as f64).abs() < 1e-6);
+        assert!((s.events_per_s * s.uptime_s - s.events_out as f64).abs() < 1e-3);
     }
 }

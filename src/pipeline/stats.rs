@@ -25,6 +25,9 @@ pub struct Counters {
     /// Times the source was reopened (a camera that came back, a replay that looped).
     pub source_restarts: AtomicU64,
     latency: Mutex<LatencyPair>,
+    capture_lag: Mutex<LatencyPair>,
+    processing: Mutex<LatencyPair>,
+    emission: Mutex<LatencyPair>,
     queues: Mutex<Vec<Arc<QueueStats>>>,
     sinks: Mutex<Vec<SinkSnapshot>>,
     last: Mutex<Option<Mark>>,
@@ -33,6 +36,45 @@ pub struct Counters {
 struct LatencyPair {
     interval: Histogram<u64>,
     total: Histogram<u64>,
+}
+
+impl LatencyPair {
+    fn new() -> Mutex<Self> {
+        Mutex::new(LatencyPair {
+            interval: histogram(),
+            total: histogram(),
+        })
+    }
+
+    fn record(m: &Mutex<Self>, d: Duration) {
+        let us = d.as_micros().min(u64::MAX as u128) as u64;
+        let mut l = lock(m);
+        l.interval.saturating_record(us.max(1));
+        l.total.saturating_record(us.max(1));
+    }
+
+    /// The interval's and the whole run's percentiles; starts a new interval.
+    fn take(m: &Mutex<Self>) -> (Latency, Latency) {
+        let mut l = lock(m);
+        let pair = (Latency::of(&l.interval), Latency::of(&l.total));
+        l.interval.reset();
+        pair
+    }
+}
+
+/// Which part of a frame's way a duration measures (see [`Counters::record`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Timing {
+    /// From the frame's own time (mapped onto the wall clock at the first frame: the replay
+    /// clock for a file, the driver's clock for a camera) to its capture: lag inside the source.
+    CaptureLag,
+    /// From the capture to the interval's events leaving Stage 2 for the sinks.
+    Processing,
+    /// From a batch reaching a sink to its last event having left (for emission at event
+    /// time: the wait for the events' own times).
+    Emission,
+    /// From the capture to the events having left (one sample per frame and sink).
+    Latency,
 }
 
 // The state at the previous snapshot, for rates.
@@ -128,6 +170,15 @@ pub struct Snapshot {
     pub latency: Latency,
     /// Capture-to-send latency since the start.
     pub latency_total: Latency,
+    /// Lag of the capture behind the frames' own times since the previous snapshot (grows when
+    /// a source falls behind real time).
+    pub capture_lag: Latency,
+    /// The same since the start.
+    pub capture_lag_total: Latency,
+    /// Capture to the end of Stage 2, since the start.
+    pub processing_total: Latency,
+    /// A batch's time in a sink until its last event left, since the start.
+    pub emission_total: Latency,
     /// The sinks.
     pub sinks: Vec<SinkSnapshot>,
     /// Process CPU time (user + system), seconds.
@@ -151,7 +202,8 @@ impl Snapshot {
         let l = &self.latency;
         format!(
             "frames in {} (dropped {}), {:.1} frames/s, {:.0} events/s, {} events; queues {}; \
-             latency p50 {:.1} ms p90 {:.1} ms p99 {:.1} ms max {:.1} ms; cpu {:.0}%, rss {} MiB",
+             latency p50 {:.1} ms p90 {:.1} ms p99 {:.1} ms max {:.1} ms; capture lag p99 {:.1} \
+             ms; cpu {:.0}%, rss {} MiB",
             self.frames_in,
             self.frames_dropped,
             self.frames_per_s,
@@ -162,6 +214,7 @@ impl Snapshot {
             l.p90_ms,
             l.p99_ms,
             l.max_ms,
+            self.capture_lag.p99_ms,
             self.cpu_percent,
             self.rss_kib / 1024
         )
@@ -194,10 +247,10 @@ impl Counters {
             frames_processed: AtomicU64::new(0),
             events_out: AtomicU64::new(0),
             source_restarts: AtomicU64::new(0),
-            latency: Mutex::new(LatencyPair {
-                interval: histogram(),
-                total: histogram(),
-            }),
+            latency: LatencyPair::new(),
+            capture_lag: LatencyPair::new(),
+            processing: LatencyPair::new(),
+            emission: LatencyPair::new(),
             queues: Mutex::new(Vec::new()),
             sinks: Mutex::new(Vec::new()),
             last: Mutex::new(None),
@@ -237,22 +290,34 @@ impl Counters {
 
     /// Records one capture-to-send latency.
     pub fn record_latency(&self, latency: Duration) {
-        let us = latency.as_micros().min(u64::MAX as u128) as u64;
-        let mut l = lock(&self.latency);
-        l.interval.saturating_record(us.max(1));
-        l.total.saturating_record(us.max(1));
+        self.record(Timing::Latency, latency);
+    }
+
+    /// Records one duration of `timing`.
+    pub fn record(&self, timing: Timing, d: Duration) {
+        let m = match timing {
+            Timing::CaptureLag => &self.capture_lag,
+            Timing::Processing => &self.processing,
+            Timing::Emission => &self.emission,
+            Timing::Latency => &self.latency,
+        };
+        LatencyPair::record(m, d);
+    }
+
+    /// The state now, with rates over the whole run (the final report).
+    pub fn final_snapshot(&self) -> Snapshot {
+        lock(&self.last).take();
+        self.snapshot()
     }
 
     /// The state now; rates and the interval latency cover the time since the previous call.
     pub fn snapshot(&self) -> Snapshot {
         let now = Instant::now();
         let usage = ProcessUsage::now();
-        let (latency, latency_total) = {
-            let mut l = lock(&self.latency);
-            let pair = (Latency::of(&l.interval), Latency::of(&l.total));
-            l.interval.reset();
-            pair
-        };
+        let (latency, latency_total) = LatencyPair::take(&self.latency);
+        let (capture_lag, capture_lag_total) = LatencyPair::take(&self.capture_lag);
+        let (_, processing_total) = LatencyPair::take(&self.processing);
+        let (_, emission_total) = LatencyPair::take(&self.emission);
         let queues: Vec<QueueSnapshot> = lock(&self.queues)
             .iter()
             .map(|q| QueueSnapshot {
@@ -298,6 +363,10 @@ impl Counters {
             queues,
             latency,
             latency_total,
+            capture_lag,
+            capture_lag_total,
+            processing_total,
+            emission_total,
             sinks: lock(&self.sinks).clone(),
             cpu_s: usage.cpu_s,
             cpu_percent: 100.0 * (usage.cpu_s - previous.cpu_s) / dt,
