@@ -16,6 +16,7 @@ pub mod event;
 pub mod format;
 pub mod frame;
 pub mod interval;
+pub mod listen;
 pub mod metrics;
 pub mod model;
 pub mod pipeline;

@@ -42,9 +42,47 @@ enum Command {
     /// Measure the daemon: capture-to-send latency, CPU and memory at 346x260 and 640x480 on
     /// the replayed fixture video.
     Bench(BenchArgs),
+    /// Receive what the daemon sends (UDP in any format, or its TCP stream): count events,
+    /// measure rate, gaps and timing, optionally write them to a file.
+    Listen(ListenArgs),
     /// The learned tier's network: import the official checkpoint, run a raw tensor.
     #[command(subcommand)]
     Model(ModelCommand),
+}
+
+#[derive(Args)]
+struct ListenArgs {
+    /// Bind this HOST:PORT for UDP datagrams (port 0: any; the address is printed).
+    #[arg(long, conflicts_with = "tcp")]
+    udp: Option<String>,
+    /// The datagram format: spif, spif_timestamped, t64_x16_y16_on8, t32_x16_y15_on1.
+    #[arg(long, default_value = "spif")]
+    format: String,
+    /// Connect to a daemon's AEDAT 4.0 network stream at HOST:PORT.
+    #[arg(long)]
+    tcp: Option<String>,
+    /// Write the events to this file (.aedat4, .raw, .csv); plain spif events get their
+    /// arrival time.
+    #[arg(short, long)]
+    out: Option<PathBuf>,
+    /// Sensor size for the file (UDP formats carry none).
+    #[arg(long, value_name = "WxH", default_value = "640x480")]
+    size: String,
+    /// Stop after this many seconds.
+    #[arg(long)]
+    duration: Option<f64>,
+    /// Stop when nothing arrived for this many seconds after the first arrival.
+    #[arg(long, default_value_t = 2.0)]
+    idle: f64,
+    /// Stop after this many events.
+    #[arg(long)]
+    max_events: Option<u64>,
+    /// Kernel receive buffer for UDP, bytes (0: the system's default).
+    #[arg(long, default_value_t = 0)]
+    recv_buffer: usize,
+    /// Print the report as one JSON object on stdout.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Subcommand)]
@@ -440,6 +478,7 @@ fn main() -> ExitCode {
         Command::Run(args) => run(args),
         Command::Devices => devices(),
         Command::Bench(args) => bench(args),
+        Command::Listen(args) => listen(args),
         Command::Model(ModelCommand::Import(args)) => model_import(args),
         Command::Model(ModelCommand::Run(args)) => model_run(args),
         Command::Model(ModelCommand::Bench(args)) => model_bench(args),
@@ -703,6 +742,73 @@ fn convert(args: ConvertArgs) -> Result<()> {
             report.repaired.nonfinite,
             report.repaired.negative,
             report.repaired.clamped
+        );
+    }
+    Ok(())
+}
+
+fn listen(args: ListenArgs) -> Result<()> {
+    use v2ce::listen::{Listen, ListenOptions};
+    let seconds = |what: &'static str, v: f64| {
+        if v.is_finite() && (0.0..=1e7).contains(&v) {
+            Ok(std::time::Duration::from_secs_f64(v))
+        } else {
+            Err(Error::invalid(what, format!("{v} s (must be 0 to 1e7)")))
+        }
+    };
+    let listen = match (&args.udp, &args.tcp) {
+        (_, Some(connect)) => Listen::Tcp {
+            connect: connect.clone(),
+        },
+        (Some(bind), None) => Listen::Udp {
+            bind: bind.clone(),
+            format: v2ce::sink::udp::UdpFormat::from_name(&args.format)?,
+        },
+        (None, None) => Listen::Udp {
+            bind: "127.0.0.1:3333".into(),
+            format: v2ce::sink::udp::UdpFormat::from_name(&args.format)?,
+        },
+    };
+    let options = ListenOptions {
+        listen,
+        out: args.out.clone(),
+        size: parse_size(&args.size)?,
+        duration: args
+            .duration
+            .map(|d| seconds("--duration", d))
+            .transpose()?,
+        idle: seconds("--idle", args.idle)?,
+        max_events: args.max_events,
+        recv_buffer: args.recv_buffer,
+    };
+    let stop = v2ce::daemon::stop_on_signals()?;
+    let report = v2ce::listen::listen(&options, &stop, |at| {
+        println!("listening on {at}");
+        let _ = std::io::stdout().flush();
+    })?;
+    if args.json {
+        let text =
+            serde_json::to_string(&report).map_err(|e| Error::invalid("report", e.to_string()))?;
+        println!("{text}");
+    } else {
+        println!(
+            "{} events in {} messages ({} ragged) over {:.2} s: {:.0} events/s; largest gap \
+             {:.1} ms; at most {} messages in one ms{}",
+            report.events,
+            report.messages,
+            report.ragged,
+            report.seconds,
+            report.events_per_s,
+            report.largest_gap_ms,
+            report.max_messages_per_ms,
+            report
+                .arrival_spread
+                .map(|l| format!(
+                    "; arrival minus event time (less its minimum) p50 {:.2} ms p99 {:.2} ms \
+                     max {:.2} ms",
+                    l.p50_ms, l.p99_ms, l.max_ms
+                ))
+                .unwrap_or_default()
         );
     }
     Ok(())

@@ -1,0 +1,310 @@
+//! `v2ce listen`: a receiver for what the daemon sends, the tool a user runs to check a setup
+//! (and what the tests use): UDP datagrams in any of the word formats, or DV's AEDAT 4.0 network
+//! stream over TCP. It counts events and datagrams, measures the rate, the largest gap between
+//! arrivals and, for formats with timestamps, the spread of arrival time minus event time, and
+//! can write what it got to an event file.
+//!
+//! For plain `spif`, which carries no timestamps, the arrival time is the event time: events
+//! written to a file get their arrival time, in microseconds since the first datagram.
+
+use std::io::Read;
+use std::net::{TcpStream, UdpSocket};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use serde::Serialize;
+
+use crate::error::{Error, Result};
+use crate::event::Event;
+use crate::format::{self, aedat4, EventEncoder};
+use crate::pipeline::stats::Latency;
+use crate::sink::udp::UdpFormat;
+
+/// What to listen to.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Listen {
+    /// Bind this `HOST:PORT` (port 0: any) and decode datagrams of `format`.
+    Udp {
+        /// The address to bind.
+        bind: String,
+        /// The datagram format.
+        format: UdpFormat,
+    },
+    /// Connect to a daemon's AEDAT 4.0 network stream at `HOST:PORT`.
+    Tcp {
+        /// The address to connect to.
+        connect: String,
+    },
+}
+
+/// How long to listen and what to keep.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ListenOptions {
+    /// The source.
+    pub listen: Listen,
+    /// Write the events here (the extension picks the format).
+    pub out: Option<PathBuf>,
+    /// Sensor size for the file (UDP formats carry none; TCP streams do).
+    pub size: (u16, u16),
+    /// Stop after this long.
+    pub duration: Option<Duration>,
+    /// Stop when nothing arrived for this long after the first arrival.
+    pub idle: Duration,
+    /// Stop after this many events.
+    pub max_events: Option<u64>,
+    /// Kernel receive buffer for UDP, bytes (0: the system's default).
+    pub recv_buffer: usize,
+}
+
+/// What [`listen`] got.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct ListenReport {
+    /// Events decoded.
+    pub events: u64,
+    /// Datagrams (UDP) or packets (TCP) received.
+    pub messages: u64,
+    /// Payload bytes received.
+    pub bytes: u64,
+    /// Datagrams whose length is not a whole number of events (cut short by the sender or a
+    /// receiver buffer).
+    pub ragged: u64,
+    /// Seconds from the first arrival to the last.
+    pub seconds: f64,
+    /// Events per second over that span.
+    pub events_per_s: f64,
+    /// Longest time between two arrivals, ms.
+    pub largest_gap_ms: f64,
+    /// Most messages that arrived within one millisecond.
+    pub max_messages_per_ms: u64,
+    /// Arrival time minus event time, less its smallest value (formats with timestamps; a
+    /// sender at event time keeps this near zero).
+    pub arrival_spread: Option<Latency>,
+    /// First and last event time as received, us.
+    pub first_t: Option<i64>,
+    /// See `first_t`.
+    pub last_t: Option<i64>,
+}
+
+struct Tally {
+    started: Option<Instant>,
+    last: Option<Instant>,
+    report: ListenReport,
+    /// Arrival minus event time, us, per event (timestamped formats).
+    offsets: Vec<i64>,
+    per_ms: (u64, u64),
+    out: Option<Box<dyn EventEncoder + Send>>,
+}
+
+impl Tally {
+    fn arrive(&mut self, at: Instant, bytes: usize) {
+        let first = *self.started.get_or_insert(at);
+        if let Some(last) = self.last {
+            let gap = (at - last).as_secs_f64() * 1e3;
+            self.report.largest_gap_ms = self.report.largest_gap_ms.max(gap);
+        }
+        self.last = Some(at);
+        let ms = (at - first).as_millis() as u64;
+        self.per_ms = if ms == self.per_ms.0 {
+            (ms, self.per_ms.1 + 1)
+        } else {
+            (ms, 1)
+        };
+        self.report.max_messages_per_ms = self.report.max_messages_per_ms.max(self.per_ms.1);
+        self.report.messages += 1;
+        self.report.bytes += bytes as u64;
+    }
+
+    fn events(&mut self, at: Instant, events: &mut [Event], timestamped: bool) -> Result<()> {
+        let since = |at: Instant, first: Option<Instant>| {
+            first.map_or(0, |f| (at - f).as_micros().min(i64::MAX as u128) as i64)
+        };
+        let arrival = since(at, self.started);
+        for e in events.iter_mut() {
+            if timestamped {
+                self.offsets.push(arrival - e.t);
+            } else {
+                e.t = arrival;
+            }
+        }
+        if let (Some(f), Some(l)) = (events.first(), events.last()) {
+            self.report.first_t.get_or_insert(f.t);
+            self.report.last_t = Some(l.t);
+        }
+        self.report.events += events.len() as u64;
+        if let Some(out) = self.out.as_mut() {
+            out.write(events)?;
+        }
+        Ok(())
+    }
+
+    fn finish(mut self) -> Result<ListenReport> {
+        if let Some(out) = self.out.as_mut() {
+            out.finish()?;
+        }
+        let mut r = self.report;
+        if let (Some(a), Some(b)) = (self.started, self.last) {
+            r.seconds = (b - a).as_secs_f64();
+            r.events_per_s = r.events as f64 / r.seconds.max(1e-9);
+        }
+        if !self.offsets.is_empty() {
+            let min = self.offsets.iter().copied().min().unwrap_or(0);
+            let mut h = hdrhistogram::Histogram::<u64>::new_with_bounds(1, 3_600_000_000, 3)
+                .map_err(|e| Error::invalid("histogram", e.to_string()))?;
+            for o in &self.offsets {
+                h.saturating_record(((o - min).max(0) as u64).max(1));
+            }
+            r.arrival_spread = Some(Latency::of(&h));
+        }
+        Ok(r)
+    }
+}
+
+/// Listens until `stop`, a limit, or the idle time after the first arrival; `ready` gets the
+/// local (UDP) or remote (TCP) address once listening.
+pub fn listen(
+    options: &ListenOptions,
+    stop: &AtomicBool,
+    ready: impl FnOnce(&str),
+) -> Result<ListenReport> {
+    let deadline = options.duration.map(|d| Instant::now() + d);
+    let out = |size: (u16, u16)| -> Result<Option<Box<dyn EventEncoder + Send>>> {
+        match &options.out {
+            None => Ok(None),
+            Some(path) => {
+                let format = format::Format::for_output(path, None, format::Compression::Lz4)?;
+                Ok(Some(format::create(path, format, size.0, size.1)?))
+            }
+        }
+    };
+    let done = |t: &Tally| {
+        stop.load(Ordering::Relaxed)
+            || deadline.is_some_and(|d| Instant::now() >= d)
+            || options.max_events.is_some_and(|m| t.report.events >= m)
+            || t.last.is_some_and(|l| l.elapsed() >= options.idle)
+    };
+    match &options.listen {
+        Listen::Udp { bind, format } => {
+            let err = |e: std::io::Error| Error::io(PathBuf::from(bind), e);
+            let socket = UdpSocket::bind(bind).map_err(err)?;
+            if options.recv_buffer > 0 {
+                set_recv_buffer(&socket, options.recv_buffer);
+            }
+            socket
+                .set_read_timeout(Some(Duration::from_millis(50)))
+                .map_err(err)?;
+            let local = socket.local_addr().map_err(err)?;
+            ready(&local.to_string());
+            let mut tally = Tally {
+                started: None,
+                last: None,
+                report: ListenReport::default(),
+                offsets: Vec::new(),
+                per_ms: (0, 0),
+                out: out(options.size)?,
+            };
+            let timestamped = *format != UdpFormat::Spif;
+            let mut buf = vec![0u8; 65_536];
+            let mut events = Vec::new();
+            while !done(&tally) {
+                let n = match socket.recv(&mut buf) {
+                    Ok(n) => n,
+                    Err(e)
+                        if matches!(
+                            e.kind(),
+                            std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                        ) =>
+                    {
+                        continue
+                    }
+                    Err(e) => return Err(err(e)),
+                };
+                let at = Instant::now();
+                tally.arrive(at, n);
+                if n % format.event_bytes() != 0 {
+                    tally.report.ragged += 1;
+                }
+                events.clear();
+                format.decode(&buf[..n], &mut events);
+                tally.events(at, &mut events, timestamped)?;
+            }
+            tally.finish()
+        }
+        Listen::Tcp { connect } => {
+            let err = |e: std::io::Error| Error::io(PathBuf::from(connect), e);
+            let stream = TcpStream::connect(connect).map_err(err)?;
+            stream
+                .set_read_timeout(Some(Duration::from_millis(200)))
+                .map_err(err)?;
+            let peer = stream.peer_addr().map_err(err)?;
+            let reader = Patient {
+                inner: stream,
+                give_up: &|| stop.load(Ordering::Relaxed),
+            };
+            let mut reader = aedat4::Reader::new_stream(reader)?;
+            let size = reader
+                .event_stream()
+                .and_then(|s| s.size)
+                .unwrap_or(options.size);
+            ready(&peer.to_string());
+            let mut tally = Tally {
+                started: None,
+                last: None,
+                report: ListenReport::default(),
+                offsets: Vec::new(),
+                per_ms: (0, 0),
+                out: out(size)?,
+            };
+            while !done(&tally) {
+                match reader.next_item()? {
+                    None => break,
+                    Some(aedat4::Item::Events(mut events)) => {
+                        let at = Instant::now();
+                        tally.arrive(at, events.len() * 16);
+                        tally.events(at, &mut events, true)?;
+                    }
+                    Some(_) => {}
+                }
+            }
+            tally.finish()
+        }
+    }
+}
+
+/// A TCP stream whose reads wait out timeouts until `give_up` says so (the stream's own read
+/// timeout only lets the caller check for a stop).
+struct Patient<'a> {
+    inner: TcpStream,
+    give_up: &'a dyn Fn() -> bool,
+}
+
+impl Read for Patient<'_> {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        loop {
+            match self.inner.read(buf) {
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                    ) && !(self.give_up)() => {}
+                other => return other,
+            }
+        }
+    }
+}
+
+/// Asks for a larger kernel receive buffer (the kernel may cap it; nothing fails if it does).
+fn set_recv_buffer(socket: &UdpSocket, bytes: usize) {
+    use std::os::fd::AsRawFd;
+    let size = bytes.min(i32::MAX as usize) as libc::c_int;
+    // SAFETY: a plain integer option on a socket we own, with its exact size.
+    unsafe {
+        libc::setsockopt(
+            socket.as_raw_fd(),
+            libc::SOL_SOCKET,
+            libc::SO_RCVBUF,
+            (&size as *const libc::c_int).cast(),
+            std::mem::size_of::<libc::c_int>() as libc::socklen_t,
+        );
+    }
+}

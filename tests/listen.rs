@@ -1,0 +1,183 @@
+//! `v2ce listen` receives what `v2ce run` sends, in every UDP format and over TCP, and writes
+//! the very events the daemon's own file output holds (checked from the known event list, not
+//! assumed).
+
+mod common;
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+
+use v2ce::event::Event;
+
+fn v2ce() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_v2ce"))
+}
+
+fn frames() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/learned/frames_61x83")
+}
+
+/// Starts `v2ce listen ARGS --json`; returns it and the address from its first line.
+fn start_listen(args: &[&str]) -> (Child, String, BufReader<std::process::ChildStdout>) {
+    let mut child = v2ce()
+        .arg("listen")
+        .args(args)
+        .args(["--idle", "3", "--json"])
+        .stdout(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut out = BufReader::new(child.stdout.take().unwrap());
+    let mut line = String::new();
+    out.read_line(&mut line).unwrap();
+    let at = line
+        .trim()
+        .strip_prefix("listening on ")
+        .unwrap_or_else(|| panic!("first line: {line}"))
+        .to_string();
+    (child, at, out)
+}
+
+/// Waits for `v2ce listen` and parses its JSON report.
+fn finish_listen(
+    mut child: Child,
+    mut out: BufReader<std::process::ChildStdout>,
+) -> serde_json::Value {
+    let mut rest = String::new();
+    std::io::Read::read_to_string(&mut out, &mut rest).unwrap();
+    assert!(child.wait().unwrap().success(), "listen failed: {rest}");
+    serde_json::from_str(rest.trim()).unwrap()
+}
+
+fn read(path: &Path) -> Vec<Event> {
+    v2ce::format::read_events(path)
+        .unwrap()
+        .events
+        .events()
+        .to_vec()
+}
+
+#[test]
+fn listen_gets_every_event_the_daemon_sends_in_every_udp_format() {
+    let dir = common::temp_dir("listen-udp");
+    for format in [
+        "t64_x16_y16_on8",
+        "t32_x16_y15_on1",
+        "spif_timestamped",
+        "spif",
+    ] {
+        let got = dir.join(format!("{format}-got.csv"));
+        let sent = dir.join(format!("{format}-sent.csv"));
+        let (listener, at, out) = start_listen(&[
+            "--udp",
+            "127.0.0.1:0",
+            "--format",
+            format,
+            "--out",
+            got.to_str().unwrap(),
+        ]);
+        let run = v2ce()
+            .arg("run")
+            .arg("--source")
+            .arg(frames())
+            .args(["--udp", &at, "--udp-format", format])
+            .args(["--queue-policy", "block", "--replay-speed", "4", "--json"])
+            .arg("--out")
+            .arg(&sent)
+            .output()
+            .unwrap();
+        assert!(
+            run.status.success(),
+            "{}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+        let report = finish_listen(listener, out);
+        let daemon: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
+        let udp = &daemon["stats"]["sinks"][0]["stats"];
+        let (sent_events, got_events) = (read(&sent), read(&got));
+        assert!(!sent_events.is_empty());
+        assert_eq!(udp["events_sent"].as_u64(), Some(sent_events.len() as u64));
+        assert_eq!(
+            report["events"].as_u64(),
+            Some(sent_events.len() as u64),
+            "{format}"
+        );
+        assert_eq!(report["ragged"], 0, "{format}");
+        assert_eq!(got_events.len(), sent_events.len(), "{format}");
+        for (g, s) in got_events.iter().zip(&sent_events) {
+            assert_eq!((g.x, g.y, g.on), (s.x, s.y, s.on), "{format}");
+            match format {
+                "t64_x16_y16_on8" => assert_eq!(g.t, s.t),
+                "spif" => {}
+                _ => assert_eq!(g.t, s.t & 0xFFFF_FFFF, "{format}"),
+            }
+        }
+        // Emission at event time: plain spif's arrival times follow the events' own times, so
+        // the events of one frame interval arrive spread over it, not in one burst. Take the
+        // busiest interval (frames 40 ms apart, replayed at 4x).
+        if format == "spif" {
+            // Frames at 250 + 40000 k us; an interval holds the events of (t_k-1, t_k].
+            let interval = |e: &Event| (e.t - 251).div_euclid(40_000);
+            let mut busiest = (0, 0);
+            for k in 0..=interval(&sent_events[sent_events.len() - 1]) {
+                let n = sent_events.iter().filter(|e| interval(e) == k).count();
+                busiest = busiest.max((n, k));
+            }
+            let idx: Vec<usize> = (0..sent_events.len())
+                .filter(|&i| interval(&sent_events[i]) == busiest.1)
+                .collect();
+            let span = |v: &[Event], f: fn(&[Event], &[usize]) -> i64| f(v, &idx);
+            let range = |v: &[Event], idx: &[usize]| v[idx[idx.len() - 1]].t - v[idx[0]].t;
+            let (sent_span, got_span) = (span(&sent_events, range) / 4, span(&got_events, range));
+            assert!(
+                got_span >= sent_span / 2,
+                "{} events of one interval arrived within {got_span} us (their times span {sent_span} us at 4x)",
+                idx.len()
+            );
+        }
+    }
+}
+
+#[test]
+fn listen_reads_the_daemons_tcp_stream() {
+    let dir = common::temp_dir("listen-tcp");
+    let sent = dir.join("sent.csv");
+    let got = dir.join("got.csv");
+    let mut daemon = v2ce()
+        .arg("run")
+        .arg("--source")
+        .arg(frames())
+        .args(["--udp", "", "--tcp", "127.0.0.1:0", "--wait-for-client"])
+        .args(["--queue-policy", "block", "--replay-speed", "4"])
+        .arg("--out")
+        .arg(&sent)
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut log = BufReader::new(daemon.stderr.take().unwrap());
+    let port = loop {
+        let mut line = String::new();
+        assert!(
+            log.read_line(&mut line).unwrap() > 0,
+            "the daemon said nothing"
+        );
+        if let Some(i) = line.find("tcp 127.0.0.1:") {
+            let rest = &line[i + "tcp 127.0.0.1:".len()..];
+            let digits: String = rest.chars().take_while(|c| c.is_ascii_digit()).collect();
+            break digits;
+        }
+    };
+    std::thread::spawn(move || for _ in log.lines() {});
+    let (listener, _, out) = start_listen(&[
+        "--tcp",
+        &format!("127.0.0.1:{port}"),
+        "--out",
+        got.to_str().unwrap(),
+    ]);
+    assert!(daemon.wait().unwrap().success());
+    let report = finish_listen(listener, out);
+    let sent_events = read(&sent);
+    assert!(!sent_events.is_empty());
+    assert_eq!(report["events"].as_u64(), Some(sent_events.len() as u64));
+    assert_eq!(read(&got), sent_events);
+}
