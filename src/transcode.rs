@@ -82,6 +82,51 @@ pub struct Summary {
     pub first_t: Option<i64>,
     /// Last event time (us).
     pub last_t: Option<i64>,
+    /// The file's format: `AEDAT 4.0`, `EVT 2.0`, `EVT 3.0`, `CSV`, `IJRR text`.
+    pub format: String,
+    /// Packet compression (AEDAT 4.0).
+    pub compression: Option<String>,
+    /// The time a RAW file adds to every decoded time, us (its readers differ on this, so the
+    /// times can be compared with theirs).
+    pub time_offset_us: Option<i64>,
+    /// The first and last events in file order, as `[t, x, y, on]`.
+    pub first_event: Option<[i64; 4]>,
+    /// See `first_event`.
+    pub last_event: Option<[i64; 4]>,
+}
+
+/// The format, compression and RAW time offset of an event file, from its header.
+fn describe_file(path: &Path) -> Result<(String, Option<String>, Option<i64>)> {
+    use std::io::BufReader;
+    let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let mut reader = BufReader::new(file);
+    let wrap = |e: Error| Error::format(path, e.to_string());
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .unwrap_or("")
+        .to_ascii_lowercase();
+    Ok(match ext.as_str() {
+        "aedat4" => {
+            let r = format::aedat4::Reader::new_file(reader).map_err(wrap)?;
+            (
+                "AEDAT 4.0".into(),
+                Some(r.header().compression.xml_name().into()),
+                None,
+            )
+        }
+        "raw" => {
+            let h = format::raw::read_header(&mut reader).map_err(wrap)?;
+            let name = match h.evt {
+                Some(format::raw::Evt::Evt3) => "EVT 3.0",
+                Some(format::raw::Evt::Evt2) => "EVT 2.0",
+                None => "EVT 2.0 (no % evt line)",
+            };
+            (name.into(), None, Some(h.time_offset))
+        }
+        "csv" => ("CSV".into(), None, None),
+        _ => ("IJRR text".into(), None, None),
+    })
 }
 
 impl Summary {
@@ -113,6 +158,14 @@ impl Summary {
 
 impl std::fmt::Display for Summary {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "format       {}", self.format)?;
+        match &self.compression {
+            Some(c) => writeln!(f, ", {c} compression")?,
+            None => writeln!(f)?,
+        }
+        if let Some(o) = self.time_offset_us {
+            writeln!(f, "time offset  {o} us (added to the file's event times)")?;
+        }
         match self.size {
             Some((w, h)) => writeln!(f, "sensor size  {w} x {h}")?,
             None => writeln!(
@@ -130,6 +183,16 @@ impl std::fmt::Display for Summary {
             )?,
             _ => writeln!(f, "time span    -")?,
         }
+        let row = |r: &Option<[i64; 4]>| {
+            r.map_or("-".to_string(), |[t, x, y, on]| {
+                format!(
+                    "t {t} us, x {x}, y {y}, {}",
+                    if on == 1 { "ON" } else { "OFF" }
+                )
+            })
+        };
+        writeln!(f, "first event  {}", row(&self.first_event))?;
+        writeln!(f, "last event   {}", row(&self.last_event))?;
         writeln!(f, "event rate   {:.0} ev/s", self.rate_hz())?;
         write!(f, "ON ratio     {:.4}", self.on_ratio())
     }
@@ -145,13 +208,24 @@ pub fn summarize(path: &Path) -> Result<Summary> {
         on: 0,
         first_t: None,
         last_t: None,
+        format: String::new(),
+        compression: None,
+        time_offset_us: None,
+        first_event: None,
+        last_event: None,
     };
+    (s.format, s.compression, s.time_offset_us) = describe_file(path)?;
+    let as_row = |e: &Event| [e.t, e.x as i64, e.y as i64, e.on as i64];
     let mut buf: Vec<Event> = Vec::with_capacity(CHUNK + 16);
     loop {
         buf.clear();
         if decoder.read_events(&mut buf, CHUNK)? == 0 {
             break;
         }
+        if s.first_event.is_none() {
+            s.first_event = buf.first().map(as_row);
+        }
+        s.last_event = buf.last().map(as_row);
         for e in &buf {
             s.extent.0 = s.extent.0.max(e.x.saturating_add(1));
             s.extent.1 = s.extent.1.max(e.y.saturating_add(1));

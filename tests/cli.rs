@@ -191,8 +191,22 @@ fn transcode_and_info() {
     assert_eq!(info["size"], serde_json::json!([64, 48]));
     assert_eq!(info["first_t"], 100);
     assert_eq!(info["on_ratio"], 0.5);
+    // The default .raw is EVT 2.0; info names the format, the RAW time offset and the first
+    // and last events, and an AEDAT 4.0 file's compression.
+    assert_eq!(info["format"], "EVT 2.0");
+    assert!(info["time_offset_us"].is_i64(), "{info}");
+    assert_eq!(info["first_event"][0], 100);
+    assert_eq!(info["last_event"][0], info["last_t"]);
+    let b: serde_json::Value =
+        serde_json::from_str(&run(&["info".as_ref(), &p("b.aedat4"), "--json".as_ref()])).unwrap();
+    assert_eq!(
+        (b["format"].as_str(), b["compression"].as_str()),
+        (Some("AEDAT 4.0"), Some("ZSTD"))
+    );
     let text = run(&["info".as_ref(), &p("a.raw")]);
     assert!(text.contains("sensor size  50 x 40"), "{text}");
+    assert!(text.contains("format       EVT 2.0"), "{text}");
+    assert!(text.contains("first event  t 100 us"), "{text}");
     // Bad input: one clear line, no panic.
     std::fs::write(dir.join("bad.raw"), b"% evt 3.0\n% end\n\x01").unwrap();
     for (args, needle) in [
