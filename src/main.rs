@@ -42,12 +42,35 @@ enum Command {
     /// Measure the daemon: capture-to-send latency, CPU and memory at 346x260 and 640x480 on
     /// the replayed fixture video.
     Bench(BenchArgs),
+    /// Draw an event file: one accumulated frame (.png) or frames at a rate (.gif, .mp4).
+    Render(RenderArgs),
     /// Receive what the daemon sends (UDP in any format, or its TCP stream): count events,
     /// measure rate, gaps and timing, optionally write them to a file.
     Listen(ListenArgs),
     /// The learned tier's network: import the official checkpoint, run a raw tensor.
     #[command(subcommand)]
     Model(ModelCommand),
+}
+
+#[derive(Args)]
+struct RenderArgs {
+    /// Events: .aedat4, .raw, .csv, IJRR .txt.
+    input: PathBuf,
+    /// The picture: .png (every event in one frame), .gif or .mp4 (frames at --fps).
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Frames per second of event time.
+    #[arg(long, default_value_t = 30.0)]
+    fps: f64,
+    /// Fade events with this time constant (ms) instead of showing each frame's window.
+    #[arg(long)]
+    decay_ms: Option<f64>,
+    /// Play back this many times slower than real time.
+    #[arg(long, default_value_t = 1.0)]
+    slowdown: f64,
+    /// Sensor size when the file has none (CSV).
+    #[arg(long, value_name = "WxH")]
+    size: Option<String>,
 }
 
 #[derive(Args)]
@@ -479,6 +502,7 @@ fn main() -> ExitCode {
         Command::Devices => devices(),
         Command::Bench(args) => bench(args),
         Command::Listen(args) => listen(args),
+        Command::Render(args) => render(args),
         Command::Model(ModelCommand::Import(args)) => model_import(args),
         Command::Model(ModelCommand::Run(args)) => model_run(args),
         Command::Model(ModelCommand::Bench(args)) => model_bench(args),
@@ -744,6 +768,26 @@ fn convert(args: ConvertArgs) -> Result<()> {
             report.repaired.clamped
         );
     }
+    Ok(())
+}
+
+fn render(args: RenderArgs) -> Result<()> {
+    let options = v2ce::render::RenderOptions {
+        fps: args.fps,
+        decay_us: args.decay_ms.map(|ms| ms * 1e3),
+        slowdown: args.slowdown,
+        size: args.size.as_deref().map(parse_size).transpose()?,
+    };
+    let r = v2ce::render::render(&args.input, &args.output, &options)?;
+    eprintln!(
+        "v2ce: {} events in {} frame{} of {} x {} to {}",
+        r.events,
+        r.frames,
+        if r.frames == 1 { "" } else { "s" },
+        r.size.0,
+        r.size.1,
+        args.output.display()
+    );
     Ok(())
 }
 
