@@ -251,3 +251,61 @@ fn dv_processing_network_reader_receives_what_our_tcp_sink_sends() {
     );
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// aestream's UDP receiver (the usual SPIF receiver, and the entry point of its PyTorch, Norse
+/// and snnTorch tensors) gets every event the daemon sends with its default settings, counted
+/// per pixel against what `v2ce convert` writes for the same frames and seed: the daemon's
+/// 512-byte datagrams fit aestream's 512-byte reads, and emission at event time spreads them out.
+#[test]
+fn aestream_receives_every_event_of_the_default_daemon() {
+    let py = python_or_skip!("aestream_receives_every_event_of_the_default_daemon");
+    let dir = temp_dir("aestream");
+    for (w, h) in [(346u16, 260u16), (640, 480)] {
+        let size = format!("{w}x{h}");
+        let expected = dir.join(format!("convert-{size}.csv"));
+        let out = Command::new(env!("CARGO_BIN_EXE_v2ce"))
+            .args(["convert", "fixture", "--size", &size, "-o"])
+            .arg(&expected)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let port = std::net::UdpSocket::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        let mut receiver = start_receiver(
+            &py,
+            &[
+                "aestream".into(),
+                port.to_string(),
+                expected.display().to_string(),
+                w.to_string(),
+                h.to_string(),
+            ],
+        );
+        let run = Command::new(env!("CARGO_BIN_EXE_v2ce"))
+            .args(["run", "--source", "fixture", "--size", &size, "--json"])
+            .args(["--udp", &format!("127.0.0.1:{port}")])
+            .output()
+            .unwrap();
+        assert!(
+            run.status.success(),
+            "{}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+        let report: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
+        let status = receiver.wait().unwrap();
+        assert!(
+            status.success(),
+            "{size}: aestream did not get every event; daemon: frames dropped {}, sink {}",
+            report["stats"]["frames_dropped"],
+            report["stats"]["sinks"][0]["stats"]
+        );
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}

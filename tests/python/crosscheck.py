@@ -9,6 +9,7 @@ environment; each mode compares what a third-party reader gets with an expected 
     crosscheck.py udp FORMAT PORT EXPECTED.csv WIDTH HEIGHT    FORMAT: t64_x16_y16_on8 |
                                                                t32_x16_y15_on1 | spif
     crosscheck.py tcp PORT EXPECTED.csv
+    crosscheck.py aestream PORT EXPECTED.csv WIDTH HEIGHT     aestream's UDP receiver (spif)
 
 `udp` and `tcp` print READY once listening (udp) or connected (tcp).
 """
@@ -219,6 +220,39 @@ def tcp(port, want):
     return compare(got, want, "dv_processing NetworkReader over TCP")
 
 
+def aestream_udp(port, want, width, height):
+    """aestream's UDP receiver (its C++ socket reads 512 bytes per datagram) accumulating
+    per-pixel counts, as its PyTorch/Norse/snnTorch users get them, against the expected
+    events' per-pixel counts (all polarities)."""
+    import time
+
+    import aestream
+
+    watchdog(120, "aestream udp")
+    expect = np.zeros((width, height), np.int64)
+    np.add.at(expect, (want[:, 1], want[:, 2]), 1)
+    got = np.zeros((width, height), np.int64)
+    last = None
+    with aestream.UDPInput((width, height), device="cpu", port=port) as stream:
+        print("READY", flush=True)
+        while got.sum() < len(want):
+            frame = np.asarray(stream.read()).astype(np.int64)
+            if frame.sum():
+                got += frame
+                last = time.monotonic()
+            elif last is not None and time.monotonic() - last > 3:
+                break
+            time.sleep(0.002)
+    if np.array_equal(got, expect):
+        print(f"OK aestream: {got.sum()} of {len(want)} events, every pixel's count identical")
+        return 0
+    bad = np.argwhere(got != expect)
+    x, y = bad[0]
+    print(f"MISMATCH aestream: {got.sum()} of {len(want)} events; {len(bad)} pixels differ, "
+          f"first ({x}, {y}): got {got[x, y]} expected {expect[x, y]}")
+    return 1
+
+
 def main(argv):
     mode = argv[1]
     if mode == "file":
@@ -230,6 +264,8 @@ def main(argv):
         return compare(got, want, f"{reader} reading {os.path.basename(path)}")
     if mode == "udp":
         return udp(argv[2], int(argv[3]), expected(argv[4]), int(argv[5]), int(argv[6]))
+    if mode == "aestream":
+        return aestream_udp(int(argv[2]), expected(argv[3]), int(argv[4]), int(argv[5]))
     if mode == "tcp":
         return tcp(int(argv[2]), expected(argv[3]))
     print(f"unknown mode {mode}")
