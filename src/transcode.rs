@@ -125,6 +125,7 @@ fn describe_file(path: &Path) -> Result<(String, Option<String>, Option<i64>)> {
             (name.into(), None, Some(h.time_offset))
         }
         "csv" => ("CSV".into(), None, None),
+        "npz" => ("V2CE toolbox .npz".into(), None, None),
         _ => ("IJRR text".into(), None, None),
     })
 }

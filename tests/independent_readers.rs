@@ -109,6 +109,7 @@ fn files_we_write_are_read_back_by_faery_aedat_and_dv_processing() {
             ("e2.raw", Format::Evt2, &["faery", "expelliarmus"]),
             ("e3.raw", Format::Evt3, &["faery"]),
             ("e.csv", Format::Csv, &["faery"]),
+            ("e.npz", Format::Npz, &["numpy"]),
         ] {
             let path = dir.join(format!("{name}-{file}"));
             write_all(&path, format, w, h, events);

@@ -15,6 +15,7 @@ pub mod csv;
 pub mod evt2;
 pub mod evt3;
 pub mod ijrr;
+pub mod npz;
 pub mod raw;
 
 use std::io::{BufReader, BufWriter, Read};
@@ -106,6 +107,8 @@ pub enum Format {
     Evt3,
     /// CSV `t_us,x,y,on`.
     Csv,
+    /// The V2CE toolbox's `.npz` (`event_stream` record array).
+    Npz,
 }
 
 impl Format {
@@ -123,10 +126,11 @@ impl Format {
                 format!("{v} (expected 2 or 3)"),
             )),
             ("csv", _) => Ok(Format::Csv),
+            ("npz", _) => Ok(Format::Npz),
             (other, _) => Err(Error::invalid(
                 "output file",
                 format!(
-                    "{}: unknown extension '.{other}' (expected .aedat4, .raw or .csv)",
+                    "{}: unknown extension '.{other}' (expected .aedat4, .raw, .csv or .npz)",
                     path.display()
                 ),
             )),
@@ -140,6 +144,7 @@ impl Format {
             Format::Evt2 => "evt2",
             Format::Evt3 => "evt3",
             Format::Csv => "csv",
+            Format::Npz => "npz",
         }
     }
 }
@@ -196,6 +201,10 @@ pub fn open(path: &Path) -> Result<Box<dyn EventDecoder + Send>> {
             }
         }
         "csv" => Box::new(csv::Decoder::new(reader)),
+        "npz" => {
+            drop(reader);
+            Box::new(npz::Decoder::open(path)?)
+        }
         "txt" => {
             let rec = ijrr::read_events(path)?;
             Box::new(MemoryDecoder {
@@ -203,14 +212,12 @@ pub fn open(path: &Path) -> Result<Box<dyn EventDecoder + Send>> {
                 events: rec.events.into_events().into_iter(),
             })
         }
-        other => {
-            return Err(Error::format(
-                path,
-                format!(
-                    "unknown event file type '.{other}' (expected .aedat4, .raw, .csv or .txt)"
-                ),
-            ))
-        }
+        other => return Err(Error::format(
+            path,
+            format!(
+                "unknown event file type '.{other}' (expected .aedat4, .raw, .csv, .npz or .txt)"
+            ),
+        )),
     };
     Ok(Box::new(FileDecoder {
         path: path.to_path_buf(),
@@ -253,6 +260,7 @@ pub fn create(
         Format::Evt2 => Box::new(evt2::Encoder::new(w, width, height).map_err(wrap)?),
         Format::Evt3 => Box::new(evt3::Encoder::new(w, width, height).map_err(wrap)?),
         Format::Csv => Box::new(csv::Encoder::new(w).map_err(wrap)?),
+        Format::Npz => Box::new(npz::Encoder::new(w, path).map_err(wrap)?),
     };
     Ok(Box::new(FileEncoder {
         path: path.to_path_buf(),

@@ -103,7 +103,14 @@ def read_expelliarmus(path):
     return columns(e["t"], e["x"], e["y"], e["p"])
 
 
+def read_numpy(path):
+    """The V2CE toolbox's .npz, as np.load reads it."""
+    e = np.load(path)["event_stream"]
+    return columns(e["timestamp"], e["x"], e["y"], e["polarity"])
+
+
 READERS = {
+    "numpy": read_numpy,
     "faery": read_faery,
     "aedat": read_aedat,
     "dv": read_dv,

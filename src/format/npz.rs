@@ -1,0 +1,302 @@
+//! The V2CE toolbox's event file: a NumPy `.npz` (`np.savez`: a zip archive, entries stored)
+//! holding one array `event_stream`, a record array of
+//! `[('timestamp', '<i8'), ('x', '<i2'), ('y', '<i2'), ('polarity', 'i1')]` (13 bytes a record,
+//! polarity 1 = ON, 0 = OFF; V2CE_SPEC.md section 5.5). `np.load(f)["event_stream"]` reads it.
+//!
+//! The format has no sensor size. The array's length is in its header, before the records, so
+//! the encoder spools records to a temporary file beside the output and writes the archive at
+//! the end (memory stays flat; the disk holds the records twice until then). Archives over
+//! 4 GiB are written as zip64, which NumPy reads.
+
+use std::io::{BufReader, BufWriter, Read, Seek, Write};
+use std::path::{Path, PathBuf};
+
+use super::{EventDecoder, EventEncoder};
+use crate::error::{Error, Result};
+use crate::event::Event;
+
+/// The array's name in the archive.
+pub const ARRAY: &str = "event_stream";
+
+/// Bytes per record.
+const RECORD: usize = 13;
+
+/// The record type as NumPy writes it for the toolbox's record array.
+const DESCR: &str = "[('timestamp', '<i8'), ('x', '<i2'), ('y', '<i2'), ('polarity', '|i1')]";
+
+fn bad(message: impl Into<String>) -> Error {
+    Error::invalid("NPZ", message.into())
+}
+
+/// The `.npy` header (format 1.0, padded to a multiple of 64) for `n` records.
+fn npy_header(n: u64) -> Vec<u8> {
+    let dict = format!("{{'descr': {DESCR}, 'fortran_order': False, 'shape': ({n},), }}");
+    let unpadded = 10 + dict.len() + 1;
+    let total = unpadded.div_ceil(64) * 64;
+    let mut h = b"\x93NUMPY\x01\x00".to_vec();
+    h.extend_from_slice(&((total - 10) as u16).to_le_bytes());
+    h.extend_from_slice(dict.as_bytes());
+    h.resize(total - 1, b' ');
+    h.push(b'\n');
+    h
+}
+
+/// Writes the toolbox's `.npz` to `out` (see the module docs).
+pub struct Encoder<W: Write + Seek> {
+    out: Option<W>,
+    spool_path: PathBuf,
+    spool: BufWriter<std::fs::File>,
+    count: u64,
+    last_t: i64,
+}
+
+impl<W: Write + Seek> Encoder<W> {
+    /// An encoder writing to `out`, spooling records to a temporary file beside `path`.
+    pub fn new(out: W, path: &Path) -> Result<Self> {
+        let spool_path = path.with_extension("npz.records");
+        let spool = std::fs::File::create(&spool_path).map_err(|e| Error::io(&spool_path, e))?;
+        Ok(Encoder {
+            out: Some(out),
+            spool_path,
+            spool: BufWriter::with_capacity(1 << 16, spool),
+            count: 0,
+            last_t: i64::MIN,
+        })
+    }
+}
+
+impl<W: Write + Seek> Drop for Encoder<W> {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.spool_path);
+    }
+}
+
+impl<W: Write + Seek> EventEncoder for Encoder<W> {
+    fn write(&mut self, events: &[Event]) -> Result<()> {
+        let mut rec = [0u8; RECORD];
+        for e in events {
+            if e.t < self.last_t {
+                return Err(bad(format!("{} us comes before {} us", e.t, self.last_t)));
+            }
+            if e.x > i16::MAX as u16 || e.y > i16::MAX as u16 {
+                return Err(bad(format!("({}, {}) does not fit int16", e.x, e.y)));
+            }
+            self.last_t = e.t;
+            rec[..8].copy_from_slice(&e.t.to_le_bytes());
+            rec[8..10].copy_from_slice(&(e.x as i16).to_le_bytes());
+            rec[10..12].copy_from_slice(&(e.y as i16).to_le_bytes());
+            rec[12] = e.on as u8;
+            self.spool
+                .write_all(&rec)
+                .map_err(|e| Error::io(&self.spool_path, e))?;
+        }
+        self.count += events.len() as u64;
+        Ok(())
+    }
+
+    fn finish(&mut self) -> Result<()> {
+        let Some(out) = self.out.take() else {
+            return Err(bad("finished twice"));
+        };
+        let spool_err = |e: std::io::Error| Error::io(self.spool_path.clone(), e);
+        self.spool.flush().map_err(spool_err)?;
+        let mut records = std::fs::File::open(&self.spool_path).map_err(spool_err)?;
+        let mut zip = zip::ZipWriter::new(out);
+        let options = zip::write::SimpleFileOptions::default()
+            .compression_method(zip::CompressionMethod::Stored)
+            .large_file(self.count * RECORD as u64 > u32::MAX as u64 / 2);
+        let zerr = |e: zip::result::ZipError| bad(e.to_string());
+        zip.start_file(format!("{ARRAY}.npy"), options)
+            .map_err(zerr)?;
+        zip.write_all(&npy_header(self.count))
+            .map_err(|e| bad(e.to_string()))?;
+        std::io::copy(&mut records, &mut zip).map_err(|e| bad(e.to_string()))?;
+        let mut out = zip.finish().map_err(zerr)?;
+        out.flush().map_err(|e| bad(e.to_string()))?;
+        Ok(())
+    }
+}
+
+/// Reads the toolbox's `.npz` (the `event_stream` array; other arrays are ignored).
+pub struct Decoder {
+    records: Box<dyn Read + Send>,
+    left: u64,
+    buf: Vec<u8>,
+}
+
+/// Parses a `.npy` header from `r`; returns the record count.
+fn read_npy_header(r: &mut impl Read) -> Result<u64> {
+    let mut magic = [0u8; 8];
+    r.read_exact(&mut magic)
+        .map_err(|_| bad("event_stream.npy is shorter than its magic"))?;
+    if &magic[..6] != b"\x93NUMPY" {
+        return Err(bad("event_stream is not a .npy array"));
+    }
+    let len = match magic[6] {
+        1 => {
+            let mut l = [0u8; 2];
+            r.read_exact(&mut l).map_err(|_| bad("truncated header"))?;
+            u16::from_le_bytes(l) as usize
+        }
+        2 | 3 => {
+            let mut l = [0u8; 4];
+            r.read_exact(&mut l).map_err(|_| bad("truncated header"))?;
+            u32::from_le_bytes(l) as usize
+        }
+        v => return Err(bad(format!(".npy version {v}"))),
+    };
+    if len > 1 << 16 {
+        return Err(bad(format!("a {len}-byte .npy header")));
+    }
+    let mut dict = vec![0u8; len];
+    r.read_exact(&mut dict)
+        .map_err(|_| bad("truncated header"))?;
+    let dict = String::from_utf8_lossy(&dict);
+    let squeeze: String = dict.chars().filter(|c| !c.is_whitespace()).collect();
+    let want: String = DESCR.chars().filter(|c| !c.is_whitespace()).collect();
+    // NumPy may spell the int8 field '|i1' or 'i1'.
+    if !(squeeze.contains(&want) || squeeze.contains(&want.replace("'|i1'", "'i1'"))) {
+        return Err(bad(format!(
+            "event_stream has another record type ({}); expected {DESCR}",
+            dict.trim()
+        )));
+    }
+    if squeeze.contains("'fortran_order':True") {
+        return Err(bad("a Fortran-ordered event_stream"));
+    }
+    let shape = squeeze
+        .split("'shape':(")
+        .nth(1)
+        .and_then(|s| s.split(')').next())
+        .ok_or_else(|| bad("no shape in the .npy header"))?;
+    shape.trim_end_matches(',').parse::<u64>().map_err(|_| {
+        bad(format!(
+            "event_stream has shape ({shape}); expected one dimension"
+        ))
+    })
+}
+
+impl Decoder {
+    /// Opens the archive at `path`.
+    pub fn open(path: &Path) -> Result<Self> {
+        let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+        let len = file.metadata().map_err(|e| Error::io(path, e))?.len();
+        let mut archive = zip::ZipArchive::new(BufReader::new(file))
+            .map_err(|e| bad(format!("not an .npz (zip) archive: {e}")))?;
+        let name = format!("{ARRAY}.npy");
+        let index = archive
+            .index_for_name(&name)
+            .ok_or_else(|| bad(format!("no {name} in the archive")))?;
+        let entry = archive.by_index(index).map_err(|e| bad(e.to_string()))?;
+        if entry.compression() != zip::CompressionMethod::Stored {
+            return Err(bad(
+                "a compressed .npz (np.savez_compressed): load and save it with np.savez",
+            ));
+        }
+        let start = entry
+            .data_start()
+            .ok_or_else(|| bad("cannot find where event_stream.npy's data starts"))?;
+        let size = entry.size();
+        drop(entry);
+        let mut file = archive.into_inner();
+        if start + size > len {
+            return Err(bad("event_stream.npy reaches past the end of the file"));
+        }
+        file.seek(std::io::SeekFrom::Start(start))
+            .map_err(|e| Error::io(path, e))?;
+        let mut records = file.take(size);
+        let n = read_npy_header(&mut records)?;
+        if n.checked_mul(RECORD as u64)
+            .is_none_or(|b| b > records.limit())
+        {
+            return Err(bad(format!(
+                "{n} records do not fit the {} bytes of event_stream.npy",
+                size
+            )));
+        }
+        Ok(Decoder {
+            records: Box::new(records),
+            left: n,
+            buf: Vec::new(),
+        })
+    }
+}
+
+impl EventDecoder for Decoder {
+    fn size(&self) -> Option<(u16, u16)> {
+        None
+    }
+
+    fn read_events(&mut self, out: &mut Vec<Event>, max: usize) -> Result<usize> {
+        let n = (max.max(1) as u64).min(self.left) as usize;
+        if n == 0 {
+            return Ok(0);
+        }
+        self.buf.resize(n * RECORD, 0);
+        self.records
+            .read_exact(&mut self.buf)
+            .map_err(|_| bad("event_stream.npy is cut short"))?;
+        for r in self.buf.chunks_exact(RECORD) {
+            let mut t = [0u8; 8];
+            t.copy_from_slice(&r[..8]);
+            let x = i16::from_le_bytes([r[8], r[9]]);
+            let y = i16::from_le_bytes([r[10], r[11]]);
+            if x < 0 || y < 0 {
+                return Err(bad(format!("negative pixel ({x}, {y})")));
+            }
+            out.push(Event::new(
+                i64::from_le_bytes(t),
+                x as u16,
+                y as u16,
+                r[12] != 0,
+            ));
+        }
+        self.left -= n as u64;
+        Ok(n)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn headers_are_numpy_format_1_0() {
+        for n in [0, 7, 123_456_789_012] {
+            let h = npy_header(n);
+            assert_eq!(h.len() % 64, 0);
+            assert_eq!(u16::from_le_bytes([h[8], h[9]]) as usize, h.len() - 10);
+            assert_eq!(*h.last().unwrap(), b'\n');
+            assert_eq!(read_npy_header(&mut &h[..]).unwrap(), n);
+        }
+    }
+
+    #[test]
+    fn round_trip_and_bad_archives() {
+        let dir = std::env::temp_dir().join(format!("v2ce-npz-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("e.npz");
+        let events: Vec<Event> = (0..1000)
+            .map(|i| Event::new(i * 37 - 500, (i % 300) as u16, (i % 200) as u16, i % 3 == 0))
+            .collect();
+        {
+            let file = std::fs::File::create(&path).unwrap();
+            let mut enc = Encoder::new(BufWriter::new(file), &path).unwrap();
+            enc.write(&events[..400]).unwrap();
+            enc.write(&events[400..]).unwrap();
+            enc.finish().unwrap();
+        }
+        assert!(!path.with_extension("npz.records").exists());
+        let mut dec = Decoder::open(&path).unwrap();
+        let mut got = Vec::new();
+        while dec.read_events(&mut got, 333).unwrap() > 0 {}
+        assert_eq!(got, events);
+        // Not a zip; a zip without the array; cut short.
+        std::fs::write(dir.join("x.npz"), b"PK nonsense").unwrap();
+        assert!(Decoder::open(&dir.join("x.npz")).is_err());
+        let bytes = std::fs::read(&path).unwrap();
+        std::fs::write(dir.join("cut.npz"), &bytes[..bytes.len() / 2]).unwrap();
+        assert!(Decoder::open(&dir.join("cut.npz")).is_err());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}
