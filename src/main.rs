@@ -71,6 +71,9 @@ struct RenderArgs {
     /// Sensor size when the file has none (CSV).
     #[arg(long, value_name = "WxH")]
     size: Option<String>,
+    /// Overwrite an existing output file.
+    #[arg(long)]
+    force: bool,
 }
 
 #[derive(Args)]
@@ -106,6 +109,9 @@ struct ListenArgs {
     /// Print the report as one JSON object on stdout.
     #[arg(long)]
     json: bool,
+    /// Overwrite an existing output file.
+    #[arg(long)]
+    force: bool,
 }
 
 #[derive(Subcommand)]
@@ -151,6 +157,9 @@ struct ModelImportArgs {
     /// Keep BatchNorm as nodes instead of folding it into the convolutions.
     #[arg(long)]
     keep_bn: bool,
+    /// Overwrite an existing output file.
+    #[arg(long)]
+    force: bool,
 }
 
 #[derive(Args)]
@@ -165,6 +174,9 @@ struct ModelRunArgs {
     output_npy: PathBuf,
     #[command(flatten)]
     runtime: RuntimeArgs,
+    /// Overwrite an existing output file.
+    #[arg(long)]
+    force: bool,
 }
 
 /// How `v2ce model run` and `bench` run the network.
@@ -353,6 +365,9 @@ struct TranscodeArgs {
     /// Sensor size WIDTHxHEIGHT to write (default: the input's, or the events' extent).
     #[arg(long, value_name = "WxH")]
     size: Option<String>,
+    /// Overwrite an existing output file.
+    #[arg(long)]
+    force: bool,
 }
 
 /// How an output file is encoded, beyond what its extension says.
@@ -438,6 +453,9 @@ struct ConvertArgs {
     /// Stop after this many frames.
     #[arg(long)]
     max_frames: Option<u64>,
+    /// Overwrite an existing output file.
+    #[arg(long)]
+    force: bool,
 }
 
 #[derive(Args)]
@@ -685,6 +703,10 @@ fn convert(args: ConvertArgs) -> Result<()> {
         config.stage2.seed = s;
     }
     args.tier.apply(&mut config)?;
+    check_output(&args.output, args.force)?;
+    if let Some(v) = &args.write_voxels {
+        check_output(v, args.force)?;
+    }
     let options = v2ce::frame::SourceOptions {
         fps: args.fps,
         linear: args.linear,
@@ -771,7 +793,19 @@ fn convert(args: ConvertArgs) -> Result<()> {
     Ok(())
 }
 
+/// Refuses to replace an existing file unless `force` (the `--force` flag).
+fn check_output(path: &Path, force: bool) -> Result<()> {
+    if path.exists() && !force {
+        return Err(Error::invalid(
+            "output",
+            format!("{} exists; add --force to overwrite it", path.display()),
+        ));
+    }
+    Ok(())
+}
+
 fn render(args: RenderArgs) -> Result<()> {
+    check_output(&args.output, args.force)?;
     let options = v2ce::render::RenderOptions {
         fps: args.fps,
         decay_us: args.decay_ms.map(|ms| ms * 1e3),
@@ -792,6 +826,9 @@ fn render(args: RenderArgs) -> Result<()> {
 }
 
 fn listen(args: ListenArgs) -> Result<()> {
+    if let Some(out) = &args.out {
+        check_output(out, args.force)?;
+    }
     use v2ce::listen::{Listen, ListenOptions};
     let seconds = |what: &'static str, v: f64| {
         if v.is_finite() && (0.0..=1e7).contains(&v) {
@@ -859,6 +896,7 @@ fn listen(args: ListenArgs) -> Result<()> {
 }
 
 fn model_import(args: ModelImportArgs) -> Result<()> {
+    check_output(&args.output, args.force)?;
     let options = v2ce::model::ImportOptions {
         spectral_norm: args.spectral_norm,
         fold_batch_norm: !args.keep_bn,
@@ -915,6 +953,7 @@ fn model_bench(args: ModelBenchArgs) -> Result<()> {
 }
 
 fn model_run(args: ModelRunArgs) -> Result<()> {
+    check_output(&args.output_npy, args.force)?;
     let options = args.runtime.options();
     let report = v2ce::stage1::learned::raw::run_npy(
         &args.model,
@@ -1007,6 +1046,7 @@ fn eval_stage1(args: Stage1Args) -> Result<()> {
 }
 
 fn transcode(args: TranscodeArgs) -> Result<()> {
+    check_output(&args.output, args.force)?;
     let fmt = args.encoding.format_for(&args.output)?;
     let size = args.size.as_deref().map(parse_size).transpose()?;
     let started = std::time::Instant::now();

@@ -562,9 +562,33 @@ fn writing_voxels_needs_a_tier_that_makes_them() {
         .arg("--write-voxels")
         .arg(dir.join("v.npy"))
         .arg("-o")
-        .arg(dir.join("ev.csv")));
+        .arg(dir.join("ev2.csv")));
     let v: ArrayD<f32> = ndarray_npy::read_npy(dir.join("v.npy")).unwrap();
     assert_eq!(v.shape(), &[5, 20, 61, 83]);
+    // An existing output is kept unless --force.
+    let err = fails(
+        v2ce()
+            .arg("convert")
+            .arg(fixtures().join("frames_61x83"))
+            .args(["--mode", "voxels", "--max-frames", "3"])
+            .arg("--write-voxels")
+            .arg(dir.join("v.npy"))
+            .arg("-o")
+            .arg(dir.join("ev3.csv")),
+    );
+    assert!(err.contains("--force"), "{err}");
+    let kept: ArrayD<f32> = ndarray_npy::read_npy(dir.join("v.npy")).unwrap();
+    assert_eq!(kept, v);
+    ok(v2ce()
+        .arg("convert")
+        .arg(fixtures().join("frames_61x83"))
+        .args(["--mode", "voxels", "--max-frames", "3", "--force"])
+        .arg("--write-voxels")
+        .arg(dir.join("v.npy"))
+        .arg("-o")
+        .arg(dir.join("ev2.csv")));
+    let v: ArrayD<f32> = ndarray_npy::read_npy(dir.join("v.npy")).unwrap();
+    assert_eq!(v.shape(), &[2, 20, 61, 83]);
 }
 
 #[test]

@@ -212,12 +212,14 @@ pub fn open(path: &Path) -> Result<Box<dyn EventDecoder + Send>> {
                 events: rec.events.into_events().into_iter(),
             })
         }
-        other => return Err(Error::format(
-            path,
-            format!(
+        other => {
+            return Err(Error::format(
+                path,
+                format!(
                 "unknown event file type '.{other}' (expected .aedat4, .raw, .csv, .npz or .txt)"
             ),
-        )),
+            ))
+        }
     };
     Ok(Box::new(FileDecoder {
         path: path.to_path_buf(),
