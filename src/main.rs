@@ -508,6 +508,23 @@ struct Stage2Args {
     json: bool,
 }
 
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn progress_shows_total_percentage_and_eta_when_the_length_is_known() {
+        let line = super::progress_line(50, Some(200), 1234, 5.0);
+        assert!(
+            line.starts_with("50/200 frames (25.0%), 1234 events, 10.0 frames/s, ETA 15 s"),
+            "{line}"
+        );
+        let line = super::progress_line(7, None, 9, 1.0);
+        assert!(
+            line.starts_with("7 frames, 9 events, 7.0 frames/s"),
+            "{line}"
+        );
+    }
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
@@ -740,6 +757,10 @@ fn convert(args: ConvertArgs) -> Result<()> {
     let sinks: Vec<Box<dyn v2ce::sink::Sink>> = vec![Box::new(sink)];
     let tty = std::io::stderr().is_terminal();
     let stop = v2ce::daemon::stop_on_signals()?;
+    let total = match (source.frames_hint(), args.max_frames) {
+        (Some(n), Some(m)) => Some(n.min(m)),
+        (n, m) => n.or(m),
+    };
     let report = v2ce::convert::convert(
         source,
         stage1,
@@ -750,10 +771,8 @@ fn convert(args: ConvertArgs) -> Result<()> {
         |r| {
             if tty {
                 eprint!(
-                    "\r  {} frames, {} events, {:.1} frames/s   ",
-                    r.frames,
-                    r.events,
-                    r.frames as f64 / r.seconds.max(1e-9)
+                    "\r  {}",
+                    progress_line(r.frames, total, r.events, r.seconds)
                 );
             }
         },
@@ -950,6 +969,26 @@ fn model_bench(args: ModelBenchArgs) -> Result<()> {
         serde_json::to_string(&report).map_err(|e| Error::invalid("report", e.to_string()))?;
     println!("{text}");
     Ok(())
+}
+
+/// `frames/total frames (pct), N events, rate, ETA` (without a total: frames, events, rate).
+fn progress_line(frames: u64, total: Option<u64>, events: u64, seconds: f64) -> String {
+    let rate = frames as f64 / seconds.max(1e-9);
+    match total {
+        Some(total) if total > 0 => {
+            let left = total.saturating_sub(frames) as f64 / rate.max(1e-9);
+            format!(
+                "{frames}/{total} frames ({:.1}%), {events} events, {rate:.1} frames/s, ETA {}   ",
+                100.0 * frames as f64 / total as f64,
+                if frames == 0 {
+                    "-".to_string()
+                } else {
+                    format!("{:.0} s", left)
+                }
+            )
+        }
+        _ => format!("{frames} frames, {events} events, {rate:.1} frames/s   "),
+    }
 }
 
 fn model_run(args: ModelRunArgs) -> Result<()> {

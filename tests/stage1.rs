@@ -231,6 +231,25 @@ fn ffmpeg_source_uses_presentation_timestamps() {
         let expected = (i as f64 * 1001.0 / 30000.0 * 1e6).round() as i64;
         assert!((t - expected).abs() <= 1, "frame {i}: {t} vs {expected}");
     }
+    // An MP4 says how many frames it holds: the source passes that on (progress and ETA).
+    let mp4 = dir.join("clip.mp4");
+    let ok = std::process::Command::new("ffmpeg")
+        .args([
+            "-v",
+            "error",
+            "-y",
+            "-f",
+            "lavfi",
+            "-i",
+            "testsrc=size=64x48:rate=30",
+        ])
+        .args(["-frames:v", "12", "-c:v", "libx264", "-pix_fmt", "yuv420p"])
+        .arg(&mp4)
+        .status()
+        .unwrap();
+    assert!(ok.success());
+    let src = v2ce::frame::open(&mp4, &Default::default()).unwrap();
+    assert_eq!(src.frames_hint(), Some(12));
     std::fs::write(dir.join("bad.mkv"), b"not a video").unwrap();
     assert!(v2ce::frame::open(&dir.join("bad.mkv"), &Default::default()).is_err());
     std::fs::remove_dir_all(&dir).unwrap();

@@ -22,6 +22,7 @@ pub struct FfmpegSource {
     times: Receiver<i64>,
     stderr_tail: std::sync::Arc<std::sync::Mutex<Vec<String>>>,
     size: (u16, u16),
+    frames: Option<u64>,
     rgb: Vec<u8>,
     last_t: Option<i64>,
     index: usize,
@@ -41,22 +42,32 @@ fn tool_error(path: &Path, tool: &str, e: std::io::Error) -> Error {
     }
 }
 
-/// Frame width and height of the first video stream, from `ffprobe`.
-fn probe_size(path: &Path) -> Result<(u16, u16)> {
+/// Frame width and height of the first video stream, and its frame count when the container
+/// says, from `ffprobe`.
+fn probe_size(path: &Path) -> Result<((u16, u16), Option<u64>)> {
     let out = Command::new("ffprobe")
         .args(["-v", "error", "-select_streams", "v:0"])
-        .args(["-show_entries", "stream=width,height", "-of", "csv=p=0:s=x"])
+        .args([
+            "-show_entries",
+            "stream=width,height,nb_frames",
+            "-of",
+            "csv=p=0:s=x",
+        ])
         .arg(path)
         .stdin(Stdio::null())
         .output()
         .map_err(|e| tool_error(path, "ffprobe", e))?;
     let text = String::from_utf8_lossy(&out.stdout);
     let line = text.lines().next().unwrap_or("").trim();
-    let parsed = line
-        .split_once('x')
+    let mut fields = line.split('x');
+    let parsed = fields
+        .next()
+        .zip(fields.next())
         .and_then(|(w, h)| Some((w.parse::<u16>().ok()?, h.parse::<u16>().ok()?)));
+    // "N/A" where the container does not say.
+    let frames = fields.next().and_then(|n| n.trim().parse::<u64>().ok());
     match parsed {
-        Some((w, h)) if out.status.success() && w > 0 && h > 0 => Ok((w, h)),
+        Some((w, h)) if out.status.success() && w > 0 && h > 0 => Ok(((w, h), frames)),
         _ => Err(Error::format(
             path,
             format!(
@@ -92,7 +103,7 @@ fn parse_pts_us(line: &str, (num, den): (i128, i128)) -> Option<i64> {
 impl FfmpegSource {
     /// Starts decoding `path`.
     pub fn open(path: &Path) -> Result<Self> {
-        let size = probe_size(path)?;
+        let (size, frames) = probe_size(path)?;
         let mut child = Command::new("ffmpeg")
             .args([
                 "-nostdin",
@@ -154,6 +165,7 @@ impl FfmpegSource {
             times,
             stderr_tail,
             size,
+            frames,
             rgb: vec![0; size.0 as usize * size.1 as usize * 3],
             last_t: None,
             index: 0,
@@ -215,6 +227,10 @@ impl FrameSource for FfmpegSource {
 
     fn describe(&self) -> String {
         format!("video {} (ffmpeg)", self.path.display())
+    }
+
+    fn frames_hint(&self) -> Option<u64> {
+        self.frames
     }
 }
 

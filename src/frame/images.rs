@@ -184,6 +184,10 @@ impl FrameSource for ImageFolder {
         )
     }
 
+    fn frames_hint(&self) -> Option<u64> {
+        Some(self.frames.len() as u64)
+    }
+
     fn encoding(&self) -> super::SourceEncoding {
         if self.linear {
             super::SourceEncoding::Linear

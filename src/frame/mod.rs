@@ -74,6 +74,11 @@ pub trait FrameSource: Send {
     /// What this source reads, for logs.
     fn describe(&self) -> String;
 
+    /// How many frames the source holds, when it knows (for progress and an ETA).
+    fn frames_hint(&self) -> Option<u64> {
+        None
+    }
+
     /// How the source's values were decoded (sRGB unless the source says otherwise).
     fn encoding(&self) -> SourceEncoding {
         SourceEncoding::Srgb

@@ -160,6 +160,10 @@ impl FrameSource for Resized {
         }
     }
 
+    fn frames_hint(&self) -> Option<u64> {
+        self.inner.frames_hint()
+    }
+
     fn encoding(&self) -> super::SourceEncoding {
         self.inner.encoding()
     }

@@ -108,6 +108,10 @@ impl FrameSource for SceneSource {
         )
     }
 
+    fn frames_hint(&self) -> Option<u64> {
+        Some(self.frames as u64)
+    }
+
     fn encoding(&self) -> super::SourceEncoding {
         super::SourceEncoding::Linear
     }
