@@ -508,23 +508,6 @@ struct Stage2Args {
     json: bool,
 }
 
-#[cfg(test)]
-mod tests {
-    #[test]
-    fn progress_shows_total_percentage_and_eta_when_the_length_is_known() {
-        let line = super::progress_line(50, Some(200), 1234, 5.0);
-        assert!(
-            line.starts_with("50/200 frames (25.0%), 1234 events, 10.0 frames/s, ETA 15 s"),
-            "{line}"
-        );
-        let line = super::progress_line(7, None, 9, 1.0);
-        assert!(
-            line.starts_with("7 frames, 9 events, 7.0 frames/s"),
-            "{line}"
-        );
-    }
-}
-
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
@@ -1253,4 +1236,21 @@ fn load_events_and_intervals(
         ));
     };
     Ok((recording, intervals))
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn progress_shows_total_percentage_and_eta_when_the_length_is_known() {
+        let line = super::progress_line(50, Some(200), 1234, 5.0);
+        assert!(
+            line.starts_with("50/200 frames (25.0%), 1234 events, 10.0 frames/s, ETA 15 s"),
+            "{line}"
+        );
+        let line = super::progress_line(7, None, 9, 1.0);
+        assert!(
+            line.starts_with("7 frames, 9 events, 7.0 frames/s"),
+            "{line}"
+        );
+    }
 }
