@@ -313,10 +313,21 @@ pub struct BenchResult {
     pub events_per_s: f64,
     /// Datagrams the loopback receiver got.
     pub datagrams_received: u64,
+    /// Events the loopback receiver got, and the UDP sink sent.
+    pub events_received: u64,
+    /// See `events_received`.
+    pub events_sent: u64,
+    /// Events the sink sent later than their due time (emission at event time).
+    pub events_late: u64,
+    /// The receiver's arrival time minus event time, less its minimum (`spif_timestamped`).
+    pub arrival_spread: Option<Latency>,
+    /// Most datagrams the receiver got within one millisecond.
+    pub max_datagrams_per_ms: u64,
     /// Capture-to-send latency over the whole run.
     pub latency: Latency,
-    /// The latency budget: one frame interval plus Stage 1's wait for its window (the stride:
-    /// one interval for the physics tier), at the replay speed.
+    /// The latency budget: Stage 1's wait for its window (the stride: one interval for the
+    /// physics tier) plus one frame interval, or plus the emit delay at event time, at the
+    /// replay speed.
     pub budget_ms: f64,
     /// Stage 1 as it ran (tier, window, stride, the network's time per window).
     pub stage1: crate::stage1::Stage1Stats,
@@ -337,7 +348,9 @@ impl BenchResult {
         format!(
             "{}x{} {} L={} stride {}: {:.1} frames/s ({} dropped), {:.0} events/s; capture-to-send latency p50 \
              {:.2} ms, p90 {:.2} ms, p99 {:.2} ms, max {:.2} ms (budget {:.1} ms: {}); cpu \
-             {:.1}% of a core; rss {}..{} KiB, first minute max {} KiB, last minute max {} KiB",
+             {:.1}% of a core; rss {}..{} KiB, first minute max {} KiB, last minute max {} KiB; \
+             udp receiver: {} of {} events ({} sent late), arrival minus event time{}, at most {} \
+             datagrams in one ms",
             self.size.0,
             self.size.1,
             self.stage1.tier,
@@ -360,7 +373,14 @@ impl BenchResult {
             self.rss_range_kib.0,
             self.rss_range_kib.1,
             self.rss_first_last_minute_kib.0,
-            self.rss_first_last_minute_kib.1
+            self.rss_first_last_minute_kib.1,
+            self.events_received,
+            self.events_sent,
+            self.events_late,
+            self.arrival_spread
+                .map(|a| format!(" p50 {:.2} ms p99 {:.2} ms max {:.2} ms", a.p50_ms, a.p99_ms, a.max_ms))
+                .unwrap_or_else(|| " -".into()),
+            self.max_datagrams_per_ms
         )
     }
 }
@@ -376,25 +396,33 @@ pub fn bench(
     base: &Config,
     stop: &AtomicBool,
 ) -> Result<BenchResult> {
-    let udp_err = |e: std::io::Error| Error::io("udp receiver", e);
-    let socket = std::net::UdpSocket::bind("127.0.0.1:0").map_err(udp_err)?;
-    let port = socket.local_addr().map_err(udp_err)?.port();
-    socket
-        .set_read_timeout(Some(Duration::from_millis(200)))
-        .map_err(udp_err)?;
+    // A receiver thread: `v2ce listen`'s, on timestamped SPIF words (the default datagram
+    // size), measuring when events arrive against their own times.
     let done = Arc::new(AtomicBool::new(false));
+    let (port_tx, port_rx) = crossbeam_channel::bounded::<String>(1);
     let receiver = std::thread::spawn({
         let done = done.clone();
         move || {
-            let (mut buf, mut n) = (vec![0u8; 65536], 0u64);
-            while !done.load(Ordering::Relaxed) {
-                if socket.recv(&mut buf).is_ok() {
-                    n += 1;
-                }
-            }
-            n
+            let options = crate::listen::ListenOptions {
+                listen: crate::listen::Listen::Udp {
+                    bind: "127.0.0.1:0".into(),
+                    format: crate::sink::udp::UdpFormat::SpifTimestamped,
+                },
+                out: None,
+                size: (1, 1),
+                duration: None,
+                idle: Duration::from_secs(3600),
+                max_events: None,
+                recv_buffer: 0,
+            };
+            crate::listen::listen(&options, &done, |at| {
+                let _ = port_tx.send(at.to_string());
+            })
         }
     });
+    let address = port_rx
+        .recv_timeout(Duration::from_secs(5))
+        .map_err(|_| Error::invalid("bench", "the UDP receiver did not start"))?;
     let mut config = Config {
         run: RunConfig::default(),
         ..base.clone()
@@ -404,7 +432,8 @@ pub fn bench(
     config.run.size = format!("{}x{}", size.0, size.1);
     config.run.loop_source = true;
     config.run.duration = seconds;
-    config.run.udp = format!("127.0.0.1:{port}");
+    config.run.udp = address;
+    config.run.udp_format = crate::sink::udp::UdpFormat::SpifTimestamped;
     let (source, what) = open_source(&config)?;
     let stage1 = crate::convert::build_stage1(&config, source.first.as_ref())?;
     let sinks = open_sinks(&config.run, size.0, size.1, speed)?;
@@ -421,9 +450,19 @@ pub fn bench(
         rss.push(s.rss_kib);
     };
     let report = pipeline::run(source, stages, &options(&config.run), stop, &mut on_tick);
+    // Let the last datagrams land, then stop the receiver.
+    std::thread::sleep(Duration::from_millis(200));
     done.store(true, Ordering::Relaxed);
-    let datagrams = receiver.join().unwrap_or(0);
+    let received = receiver
+        .join()
+        .map_err(|_| Error::invalid("bench", "the UDP receiver panicked"))??;
     let report = report?;
+    let udp = report
+        .stats
+        .sinks
+        .first()
+        .map(|k| k.stats)
+        .unwrap_or_default();
     let s = &report.stats;
     // A run shorter than one interval has no tick: take the end (after the stages freed
     // their buffers, so lower than while running).
@@ -440,10 +479,24 @@ pub fn bench(
         frames: s.frames_in,
         frames_dropped: s.frames_dropped,
         events_per_s: s.events_out as f64 / seconds,
-        datagrams_received: datagrams,
+        datagrams_received: received.messages,
+        events_received: received.events,
+        events_sent: udp.events_sent,
+        events_late: udp.events_late,
+        arrival_spread: received.arrival_spread,
+        max_datagrams_per_ms: received.max_messages_per_ms,
         latency: s.latency_total,
-        // The fixture runs at 30 fps.
-        budget_ms: (1 + report.stage1.stride) as f64 * 1000.0 / 30.0 / speed.max(1e-9),
+        // The fixture runs at 30 fps; at event time the last event of a batch leaves the emit
+        // delay after its frame, and a window's stride of intervals waits before that.
+        budget_ms: match config.run.emit {
+            crate::config::EmitMode::Asap => {
+                (1 + report.stage1.stride) as f64 * 1000.0 / 30.0 / speed.max(1e-9)
+            }
+            crate::config::EmitMode::EventTime => {
+                config.run.emit_delay_ms
+                    + report.stage1.stride as f64 * 1000.0 / 30.0 / speed.max(1e-9)
+            }
+        },
         stage1: report.stage1.clone(),
         cpu_percent: 100.0 * (s.cpu_s - cpu_before) / seconds,
         rss_range_kib: (rss.iter().copied().min().unwrap_or(0), max_of(&rss)),
