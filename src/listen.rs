@@ -97,6 +97,17 @@ struct Tally {
 }
 
 impl Tally {
+    fn new(out: Option<Box<dyn EventEncoder + Send>>) -> Self {
+        Tally {
+            started: None,
+            last: None,
+            report: ListenReport::default(),
+            offsets: Vec::new(),
+            per_ms: (0, 0),
+            out,
+        }
+    }
+
     fn arrive(&mut self, at: Instant, bytes: usize) {
         let first = *self.started.get_or_insert(at);
         if let Some(last) = self.last {
@@ -195,14 +206,7 @@ pub fn listen(
                 .map_err(err)?;
             let local = socket.local_addr().map_err(err)?;
             ready(&local.to_string());
-            let mut tally = Tally {
-                started: None,
-                last: None,
-                report: ListenReport::default(),
-                offsets: Vec::new(),
-                per_ms: (0, 0),
-                out: out(options.size)?,
-            };
+            let mut tally = Tally::new(out(options.size)?);
             let timestamped = *format != UdpFormat::Spif;
             let mut buf = vec![0u8; 65_536];
             let mut events = Vec::new();
@@ -247,14 +251,7 @@ pub fn listen(
                 .and_then(|s| s.size)
                 .unwrap_or(options.size);
             ready(&peer.to_string());
-            let mut tally = Tally {
-                started: None,
-                last: None,
-                report: ListenReport::default(),
-                offsets: Vec::new(),
-                per_ms: (0, 0),
-                out: out(size)?,
-            };
+            let mut tally = Tally::new(out(size)?);
             while !done(&tally) {
                 match reader.next_item()? {
                     None => break,

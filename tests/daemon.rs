@@ -162,11 +162,7 @@ fn faery_receives_over_udp_exactly_what_convert_writes() {
     let expected = dir.join("expected.csv");
     let args = ["--size", "320x240", "--max-frames", "60", "--seed", "7"];
     convert(&fixture(), &expected, &args);
-    let port = std::net::UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
+    let port = common::free_udp_port();
     let mut receiver = start_receiver(
         &py,
         &[

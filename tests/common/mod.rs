@@ -103,3 +103,12 @@ macro_rules! data_or_skip {
         }
     };
 }
+
+/// A UDP port on loopback that nothing listens on now (bound, then released).
+pub fn free_udp_port() -> u16 {
+    std::net::UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
