@@ -271,8 +271,8 @@ fn aestream_receives_every_event_of_the_default_daemon() {
     let _one_at_a_time = one_at_a_time();
     let dir = temp_dir("aestream");
     // 346x260 only: at 640x480 (a million events a second) aestream got every event in 6 of 9
-    // runs here and missed 0.02-0.4% in the others, with 2 cores shared by the sender, its
-    // receiver and the other readers (README).
+    // runs here and missed 0.02-0.4% in the others, when late events left in bursts on 2 cores
+    // shared by the sender, its receiver and the other readers (README).
     {
         let (w, h) = (346u16, 260u16);
         let size = format!("{w}x{h}");

@@ -172,11 +172,6 @@ pub enum Emission {
     },
 }
 
-/// The least time between two datagrams at event time: at most 50 a millisecond, five times
-/// what 640x480 at a million events a second needs on average, so that late events catching up
-/// do not overflow a receiver (aestream lost 0.02-0.4% of 640x480 in bursts of 250 a ms).
-const MIN_GAP: Duration = Duration::from_micros(20);
-
 /// Waits until `due`: sleeps while it is far, then spins the last stretch, so a datagram never
 /// leaves early and rarely late. (A sleep overshoots by the thread's timer slack, 50 us by
 /// default, which [`precise_sleeps`] lowers; yielding instead of spinning can lose the core for
@@ -244,8 +239,6 @@ pub struct UdpSink {
     clock: Option<(EmitClock, Duration)>,
     /// The sending thread's sleeps were made precise.
     precise: bool,
-    /// When the last datagram left (emission at event time).
-    last_sent: Instant,
     stats: SinkStats,
 }
 
@@ -303,7 +296,6 @@ impl UdpSink {
             interval,
             clock,
             precise: false,
-            last_sent: Instant::now(),
             config,
             socket,
             target,
@@ -414,11 +406,8 @@ impl Sink for UdpSink {
                 j += 1;
             }
             let reanchors = clock.reanchors;
-            // Never faster than one datagram per MIN_GAP: catching up after a stall spreads out
-            // instead of bursting past a receiver's socket buffer.
-            wait_until(last_due.max(self.last_sent + MIN_GAP));
+            wait_until(last_due);
             let sent_at = Instant::now();
-            self.last_sent = sent_at;
             self.stats.reanchors = reanchors;
             // Late: sent more than a slice (and a millisecond of scheduling) after its time.
             if sent_at > first_due + slice + Duration::from_millis(1) {
