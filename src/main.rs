@@ -266,13 +266,16 @@ struct RunArgs {
     /// TOML configuration file (the flags below override it); see config/v2ce.toml.
     #[arg(long)]
     config: Option<PathBuf>,
-    /// A camera (/dev/video0 or an index), a file or image folder, or `fixture`.
+    /// A camera (/dev/video0 or an index), a file or image folder, or `fixture` [config default:
+    /// "", the first camera, else the fixture].
     #[arg(long)]
     source: Option<String>,
-    /// Send UDP datagrams to HOST:PORT (an empty string turns UDP off).
+    /// Send UDP datagrams to HOST:PORT (an empty string turns UDP off) [config default:
+    /// 127.0.0.1:3333].
     #[arg(long)]
     udp: Option<String>,
-    /// Datagram format: spif, spif_timestamped, t64_x16_y16_on8, t32_x16_y15_on1.
+    /// Datagram format: spif, spif_timestamped, t64_x16_y16_on8, t32_x16_y15_on1 [config
+    /// default: spif].
     #[arg(long)]
     udp_format: Option<String>,
     /// Largest UDP payload in bytes [config default: 512, which aestream and SpiNNaker's SPIF
@@ -289,40 +292,41 @@ struct RunArgs {
     /// How far behind the frames events leave at event time, ms [config default: 100].
     #[arg(long)]
     emit_delay_ms: Option<f64>,
-    /// Sensor preset of the physics tier: davis346, dvxplorer, ideal.
+    /// Sensor preset of the physics tier: davis346, dvxplorer, ideal [config default: davis346].
     #[arg(long)]
     preset: Option<String>,
-    /// Serve DV's AEDAT 4.0 network stream on HOST:PORT.
+    /// Serve DV's AEDAT 4.0 network stream on HOST:PORT [config default: "", off].
     #[arg(long)]
     tcp: Option<String>,
     /// Hold the source until the first TCP client has connected.
     #[arg(long)]
     wait_for_client: bool,
-    /// Also write the events to this file (.aedat4, .raw, .csv).
+    /// Also write the events to this file (.aedat4, .raw, .csv, .npz) [config default: "", none].
     #[arg(long)]
     out: Option<String>,
-    /// Seed of mismatch, noise and sampling.
+    /// Seed of mismatch, noise and sampling [config default: 0].
     #[arg(long)]
     seed: Option<u64>,
-    /// A full queue: block (lose nothing) or drop-oldest (stay live).
+    /// A full queue: block (lose nothing) or drop-oldest (stay live) [config default:
+    /// drop-oldest].
     #[arg(long)]
     queue_policy: Option<String>,
-    /// Stop after this many seconds.
+    /// Stop after this many seconds [config default: 0, no limit].
     #[arg(long)]
     duration: Option<f64>,
-    /// Stop after this many frames.
+    /// Stop after this many frames [config default: 0, no limit].
     #[arg(long)]
     max_frames: Option<u64>,
-    /// Resample frames to WIDTHxHEIGHT.
+    /// Resample frames to WIDTHxHEIGHT [config default: "", the source's size].
     #[arg(long, value_name = "WxH")]
     size: Option<String>,
-    /// Replay a file at this multiple of real time.
+    /// Replay a file at this multiple of real time [config default: 1].
     #[arg(long)]
     replay_speed: Option<f64>,
     /// Replay a file again and again.
     #[arg(long = "loop")]
     loop_source: bool,
-    /// Seconds between stats lines.
+    /// Seconds between stats lines [config default: 10].
     #[arg(long)]
     stats_interval: Option<f64>,
     /// Print the final report as one JSON object on stdout.
