@@ -203,22 +203,22 @@ fn ffmpeg_source_uses_presentation_timestamps() {
     }
     let dir = std::env::temp_dir().join(format!("v2ce-ffmpeg-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
-    let p = dir.join("clip.nut");
-    let ok = std::process::Command::new("ffmpeg")
-        .args([
-            "-v",
-            "error",
-            "-y",
-            "-f",
-            "lavfi",
-            "-i",
-            "testsrc=size=64x48:rate=30000/1001",
-        ])
-        .args(["-frames:v", "12", "-c:v", "ffv1"])
-        .arg(&p)
-        .status()
-        .unwrap();
-    assert!(ok.success());
+    // 12 frames of ffmpeg's test pattern at `rate`, encoded with `codec`.
+    let clip = |name: &str, rate: &str, codec: &[&str]| {
+        let path = dir.join(name);
+        let ok = std::process::Command::new("ffmpeg")
+            .args(["-v", "error", "-y", "-f", "lavfi", "-i"])
+            .arg(format!("testsrc=size=64x48:rate={rate}"))
+            .arg("-frames:v")
+            .arg("12")
+            .args(codec)
+            .arg(&path)
+            .status()
+            .unwrap();
+        assert!(ok.success());
+        path
+    };
+    let p = clip("clip.nut", "30000/1001", &["-c:v", "ffv1"]);
     let mut src = v2ce::frame::open(&p, &Default::default()).unwrap();
     assert_eq!(src.size(), (64, 48));
     let mut times = Vec::new();
@@ -232,22 +232,11 @@ fn ffmpeg_source_uses_presentation_timestamps() {
         assert!((t - expected).abs() <= 1, "frame {i}: {t} vs {expected}");
     }
     // An MP4 says how many frames it holds: the source passes that on (progress and ETA).
-    let mp4 = dir.join("clip.mp4");
-    let ok = std::process::Command::new("ffmpeg")
-        .args([
-            "-v",
-            "error",
-            "-y",
-            "-f",
-            "lavfi",
-            "-i",
-            "testsrc=size=64x48:rate=30",
-        ])
-        .args(["-frames:v", "12", "-c:v", "libx264", "-pix_fmt", "yuv420p"])
-        .arg(&mp4)
-        .status()
-        .unwrap();
-    assert!(ok.success());
+    let mp4 = clip(
+        "clip.mp4",
+        "30",
+        &["-c:v", "libx264", "-pix_fmt", "yuv420p"],
+    );
     let src = v2ce::frame::open(&mp4, &Default::default()).unwrap();
     assert_eq!(src.frames_hint(), Some(12));
     std::fs::write(dir.join("bad.mkv"), b"not a video").unwrap();
