@@ -8,8 +8,8 @@ use std::path::Path;
 use serde::Deserialize;
 
 use crate::error::{Error, Result};
+use crate::format::datagram::UdpFormat;
 use crate::pipeline::queue::QueuePolicy;
-use crate::sink::udp::UdpFormat;
 use crate::stage1::Stage1Config;
 use crate::stage2::SamplerKind;
 use crate::voxel::DEFAULT_BINS;

@@ -406,7 +406,7 @@ pub fn bench(
             let options = crate::listen::ListenOptions {
                 listen: crate::listen::Listen::Udp {
                     bind: "127.0.0.1:0".into(),
-                    format: crate::sink::udp::UdpFormat::SpifTimestamped,
+                    format: crate::format::datagram::UdpFormat::SpifTimestamped,
                 },
                 out: None,
                 size: (1, 1),
@@ -433,7 +433,7 @@ pub fn bench(
     config.run.loop_source = true;
     config.run.duration = seconds;
     config.run.udp = address;
-    config.run.udp_format = crate::sink::udp::UdpFormat::SpifTimestamped;
+    config.run.udp_format = crate::format::datagram::UdpFormat::SpifTimestamped;
     let (source, what) = open_source(&config)?;
     let stage1 = crate::convert::build_stage1(&config, source.first.as_ref())?;
     let sinks = open_sinks(&config.run, size.0, size.1, speed)?;

@@ -17,9 +17,9 @@ use serde::Serialize;
 
 use crate::error::{Error, Result};
 use crate::event::Event;
+use crate::format::datagram::UdpFormat;
 use crate::format::{self, aedat4, EventEncoder};
 use crate::pipeline::stats::Latency;
-use crate::sink::udp::UdpFormat;
 
 /// What to listen to.
 #[derive(Debug, Clone, PartialEq)]

@@ -570,7 +570,7 @@ fn run_config(args: &RunArgs) -> Result<Config> {
         run.udp = v.clone();
     }
     if let Some(v) = &args.udp_format {
-        run.udp_format = v2ce::sink::udp::UdpFormat::from_name(v)?;
+        run.udp_format = v2ce::format::datagram::UdpFormat::from_name(v)?;
     }
     if let Some(v) = args.udp_payload {
         run.udp_payload = v;
@@ -849,11 +849,11 @@ fn listen(args: ListenArgs) -> Result<()> {
         },
         (Some(bind), None) => Listen::Udp {
             bind: bind.clone(),
-            format: v2ce::sink::udp::UdpFormat::from_name(&args.format)?,
+            format: v2ce::format::datagram::UdpFormat::from_name(&args.format)?,
         },
         (None, None) => Listen::Udp {
             bind: "127.0.0.1:3333".into(),
-            format: v2ce::sink::udp::UdpFormat::from_name(&args.format)?,
+            format: v2ce::format::datagram::UdpFormat::from_name(&args.format)?,
         },
     };
     let options = ListenOptions {

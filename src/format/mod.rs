@@ -7,11 +7,14 @@
 //! | `.csv` | [`csv`] | `t_us,x,y,on`, read and written | - |
 //! | `.txt` | [`ijrr`] | `events.txt` (`t_seconds x y polarity`), read | `images.txt` (`t_seconds path`) |
 //!
+//! The UDP datagram word layouts (`spif` and faery's) are in [`datagram`].
+//!
 //! Every format has a streaming [`EventDecoder`] and (but IJRR) an [`EventEncoder`]; [`open`] and
 //! [`create`] pick them by extension.
 
 pub mod aedat4;
 pub mod csv;
+pub mod datagram;
 pub mod evt2;
 pub mod evt3;
 pub mod ijrr;
