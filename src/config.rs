@@ -10,6 +10,11 @@ use serde::Deserialize;
 use crate::error::{Error, Result};
 use crate::format::datagram::UdpFormat;
 use crate::pipeline::queue::QueuePolicy;
+use crate::sink::file::FileSinkConfig;
+use crate::sink::tcp::{TcpFormat, TcpSinkConfig};
+pub use crate::sink::udp::EmitMode;
+use crate::sink::udp::UdpSinkConfig;
+use crate::sink::SinkConfig;
 use crate::stage1::Stage1Config;
 use crate::stage2::SamplerKind;
 use crate::voxel::DEFAULT_BINS;
@@ -26,6 +31,9 @@ pub struct Config {
     pub run: RunConfig,
     /// What to ask a camera for.
     pub camera: crate::capture::CameraConfig,
+    /// More outputs of the daemon, one `[[sink]]` table each (besides the `[run]` shorthands
+    /// `udp`, `tcp` and `out`).
+    pub sink: Vec<SinkConfig>,
 }
 
 /// The `[run]` table: what `v2ce run` reads, where it sends, and how it copes.
@@ -61,8 +69,11 @@ pub struct RunConfig {
     pub emit_delay_ms: f64,
     /// Longest spread of due times in one datagram at event time, milliseconds.
     pub emit_slice_ms: f64,
-    /// Serve DV's AEDAT 4.0 network stream on this `HOST:PORT` (`""`: no TCP).
+    /// Serve an event stream to TCP clients on this `HOST:PORT` (`""`: no TCP).
     pub tcp: String,
+    /// What TCP clients receive: "aedat4" (DV's network stream), "evt2" or "evt3" (Prophesee
+    /// RAW, the bytes of a `.raw` file).
+    pub tcp_format: TcpFormat,
     /// Hold the source until the first TCP client has connected (nothing is streamed before).
     pub wait_for_client: bool,
     /// Also write events to this file; the extension picks the format (`""`: none).
@@ -99,6 +110,7 @@ impl Default for RunConfig {
             emit_delay_ms: 100.0,
             emit_slice_ms: 0.5,
             tcp: String::new(),
+            tcp_format: TcpFormat::Aedat4,
             wait_for_client: false,
             out: String::new(),
             queue_policy: QueuePolicy::DropOldest,
@@ -113,6 +125,32 @@ impl Default for RunConfig {
 }
 
 impl RunConfig {
+    /// The outputs its shorthand keys `udp`, `tcp` and `out` configure, in that order.
+    pub fn shorthand_sinks(&self) -> Vec<SinkConfig> {
+        let mut sinks = Vec::new();
+        if !self.udp.is_empty() {
+            sinks.push(SinkConfig::Udp(UdpSinkConfig {
+                address: self.udp.clone(),
+                format: self.udp_format,
+                payload: self.udp_payload,
+                rate: self.udp_rate,
+                emit: self.emit,
+                emit_delay_ms: self.emit_delay_ms,
+                emit_slice_ms: self.emit_slice_ms,
+            }));
+        }
+        if !self.tcp.is_empty() {
+            sinks.push(SinkConfig::Tcp(TcpSinkConfig {
+                address: self.tcp.clone(),
+                format: self.tcp_format,
+            }));
+        }
+        if !self.out.is_empty() {
+            sinks.push(SinkConfig::File(FileSinkConfig::new(&self.out)));
+        }
+        sinks
+    }
+
     /// Checks values that TOML types cannot.
     pub fn validate(&self) -> Result<()> {
         let bad = |what: &'static str, message: String| Err(Error::invalid(what, message));
@@ -149,52 +187,8 @@ impl RunConfig {
         if !self.size.is_empty() {
             parse_size(&self.size)?;
         }
-        let bytes = self.udp_format.event_bytes();
-        if !(bytes..=65_507).contains(&self.udp_payload) {
-            return bad(
-                "run.udp_payload",
-                format!(
-                    "{} bytes (must hold one {bytes}-byte event and fit a datagram, 65507)",
-                    self.udp_payload
-                ),
-            );
-        }
-        if !(self.emit_delay_ms.is_finite() && (0.0..=60_000.0).contains(&self.emit_delay_ms)) {
-            return bad(
-                "run.emit_delay_ms",
-                format!("{} (must be 0 to 60000)", self.emit_delay_ms),
-            );
-        }
-        if !(self.emit_slice_ms.is_finite()
-            && self.emit_slice_ms > 0.0
-            && self.emit_slice_ms <= 1000.0)
-        {
-            return bad(
-                "run.emit_slice_ms",
-                format!("{} (must be > 0 and at most 1000)", self.emit_slice_ms),
-            );
-        }
-        if self.wait_for_client && self.tcp.is_empty() {
-            return bad("run.wait_for_client", "needs a tcp address".into());
-        }
-        if self.udp.is_empty() && self.tcp.is_empty() && self.out.is_empty() {
-            return bad("run", "no output: set udp, tcp or out".into());
-        }
         Ok(())
     }
-}
-
-/// When the daemon's UDP output sends events.
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, serde::Serialize, clap::ValueEnum,
-)]
-#[serde(rename_all = "kebab-case")]
-pub enum EmitMode {
-    /// Each event at its own time plus a constant delay (`emit_delay_ms`).
-    #[default]
-    EventTime,
-    /// As fast as the socket takes them.
-    Asap,
 }
 
 /// Parses `WIDTHxHEIGHT` (each 1..=65535).
@@ -234,6 +228,34 @@ impl Default for Stage2Config {
 }
 
 impl Config {
+    /// Every output of the daemon: the `[run]` shorthands, then the `[[sink]]` tables.
+    pub fn outputs(&self) -> Vec<SinkConfig> {
+        let mut sinks = self.run.shorthand_sinks();
+        sinks.extend(self.sink.iter().cloned());
+        sinks
+    }
+
+    /// Checks the whole configuration once the command line has been applied: the `[run]`
+    /// table, each output, and that there is at least one (and a TCP one for
+    /// `wait_for_client`).
+    pub fn validate(&self) -> Result<()> {
+        self.run.validate()?;
+        let outputs = self.outputs();
+        for sink in &outputs {
+            sink.validate()?;
+        }
+        if outputs.is_empty() {
+            return Err(Error::invalid(
+                "run",
+                "no output: set udp, tcp or out, or add a [[sink]]",
+            ));
+        }
+        if self.run.wait_for_client && !outputs.iter().any(SinkConfig::serves_clients) {
+            return Err(Error::invalid("run.wait_for_client", "needs a TCP output"));
+        }
+        Ok(())
+    }
+
     /// Parses a TOML document; `origin` names it in errors.
     pub fn parse(text: &str, origin: &Path) -> Result<Self> {
         let config: Config = toml::from_str(text).map_err(|e| {
@@ -266,6 +288,10 @@ impl Config {
             .run
             .validate()
             .map_err(|e| Error::format(origin, e.to_string()))?;
+        for sink in &config.sink {
+            sink.validate()
+                .map_err(|e| Error::format(origin, e.to_string()))?;
+        }
         Ok(config)
     }
 
@@ -302,5 +328,81 @@ mod tests {
         assert!(err.contains("line 2"), "{err}");
         let c = Config::parse("[stage2]\nsampler = \"ldati-random\"\n", Path::new("x")).unwrap();
         assert_eq!(c.stage2.sampler, SamplerKind::LdatiRandom);
+    }
+
+    #[test]
+    fn sink_tables_add_outputs_after_the_shorthands() {
+        let text = r#"
+[run]
+tcp = "127.0.0.1:0"
+tcp_format = "evt3"
+
+[[sink]]
+type = "udp"
+address = "127.0.0.1:4000"
+format = "t64_x16_y16_on8"
+payload = 1300
+
+[[sink]]
+type = "tcp"
+address = "127.0.0.1:0"
+
+[[sink]]
+type = "file"
+path = "out.raw"
+evt = 3
+"#;
+        let c = Config::parse(text, Path::new("x.toml")).unwrap();
+        let outputs = c.outputs();
+        assert_eq!(outputs.len(), 5, "{outputs:?}");
+        match (&outputs[0], &outputs[1], &outputs[2], &outputs[3]) {
+            (SinkConfig::Udp(u0), SinkConfig::Tcp(t0), SinkConfig::Udp(u), SinkConfig::Tcp(t)) => {
+                assert_eq!(u0.address, "127.0.0.1:3333");
+                assert_eq!(t0.format, TcpFormat::Evt3);
+                assert_eq!(
+                    (u.format, u.payload, u.rate),
+                    (UdpFormat::T64X16Y16On8, 1300, 0)
+                );
+                assert_eq!(t.format, TcpFormat::Aedat4);
+            }
+            other => panic!("{other:?}"),
+        }
+        assert_eq!(
+            outputs[4],
+            SinkConfig::File(FileSinkConfig {
+                path: "out.raw".into(),
+                evt: Some(3)
+            })
+        );
+        c.validate().unwrap();
+    }
+
+    #[test]
+    fn bad_sink_tables_are_errors_that_say_what() {
+        let cases = [
+            ("[[sink]]\ntype = \"pigeon\"\naddress = \"x\"\n", "pigeon"),
+            (
+                "[[sink]]\ntype = \"udp\"\naddress = \"h:1\"\nport = 3\n",
+                "port",
+            ),
+            (
+                "[[sink]]\ntype = \"udp\"\naddress = \"h:1\"\npayload = 2\n",
+                "payload",
+            ),
+            ("[[sink]]\ntype = \"tcp\"\n", "address"),
+            ("[[sink]]\ntype = \"file\"\npath = \"a.mp4\"\n", "mp4"),
+        ];
+        for (text, needle) in cases {
+            let err = Config::parse(text, Path::new("x.toml"))
+                .unwrap_err()
+                .to_string();
+            assert!(err.contains(needle), "{text}: {err}");
+        }
+        let mut c = Config::default();
+        c.run.udp.clear();
+        assert!(c.validate().unwrap_err().to_string().contains("no output"));
+        c.run.wait_for_client = true;
+        c.sink.push(SinkConfig::File(FileSinkConfig::new("a.csv")));
+        assert!(c.validate().unwrap_err().to_string().contains("TCP"));
     }
 }

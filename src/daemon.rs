@@ -2,7 +2,7 @@
 //! replayed in real time, or the bundled fixture), the outputs (UDP, TCP, file), signals,
 //! systemd readiness and status, and periodic stats on the log; and [`bench`], which measures it.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
@@ -10,17 +10,13 @@ use serde::Serialize;
 use std::time::Duration;
 
 use crate::capture;
-use crate::config::{parse_size, Config, EmitMode, RunConfig};
+use crate::config::{parse_size, Config, RunConfig};
 use crate::error::{Error, Result};
-use crate::format::{Compression, Format};
 use crate::frame::resize::Resized;
 use crate::frame::{self, FrameSource, SourceOptions};
 use crate::pipeline::stats::{Latency, ProcessUsage, Snapshot};
 use crate::pipeline::{self, End, Options, Report, Source, Stages};
-use crate::sink::file::FileSink;
-use crate::sink::tcp::{TcpConfig, TcpSink};
-use crate::sink::udp::{Emission, UdpConfig, UdpSink};
-use crate::sink::Sink;
+use crate::sink::{Sink, SinkContext};
 
 /// Raises the returned flag on the first SIGINT or SIGTERM (the pipeline then flushes and
 /// stops); a second one exits at once with status 130.
@@ -151,43 +147,28 @@ pub fn open_source(config: &Config) -> Result<(Source, String)> {
     ))
 }
 
-/// Opens the configured outputs for a `width x height` sensor whose frame times run `speed`
-/// times faster than the wall clock (a file's replay speed; 1 for a camera).
+/// Opens every configured output (see [`Config::outputs`]) for a `width x height` sensor whose
+/// frame times run `speed` times faster than the wall clock (a file's replay speed; 1 for a
+/// camera).
 pub fn open_sinks(
-    run: &RunConfig,
+    config: &Config,
     width: u16,
     height: u16,
     speed: f64,
 ) -> Result<Vec<Box<dyn Sink>>> {
-    let mut sinks: Vec<Box<dyn Sink>> = Vec::new();
-    if !run.udp.is_empty() {
-        let mut c = UdpConfig::new(&run.udp, run.udp_format);
-        c.max_datagrams_per_s = (run.udp_rate > 0).then_some(f64::from(run.udp_rate));
-        c.max_payload = run.udp_payload;
-        c.emission = match run.emit {
-            EmitMode::Asap => Emission::Asap,
-            EmitMode::EventTime => Emission::EventTime {
-                delay: Duration::from_secs_f64(run.emit_delay_ms / 1e3),
-                slice: Duration::from_secs_f64(run.emit_slice_ms / 1e3),
-                speed,
-            },
-        };
-        sinks.push(Box::new(UdpSink::new(c)?));
+    let context = SinkContext {
+        width,
+        height,
+        speed,
+    };
+    let outputs = config.outputs();
+    if outputs.is_empty() {
+        return Err(Error::invalid(
+            "run",
+            "no output: set udp, tcp or out, or add a [[sink]]",
+        ));
     }
-    if !run.tcp.is_empty() {
-        sinks.push(Box::new(TcpSink::new(TcpConfig::new(
-            &run.tcp, width, height,
-        ))?));
-    }
-    if !run.out.is_empty() {
-        let path = Path::new(&run.out);
-        let format = Format::for_output(path, None, Compression::Lz4)?;
-        sinks.push(Box::new(FileSink::create(path, format, width, height)?));
-    }
-    if sinks.is_empty() {
-        return Err(Error::invalid("run", "no output: set udp, tcp or out"));
-    }
-    Ok(sinks)
+    outputs.iter().map(|sink| sink.build(&context)).collect()
 }
 
 /// The pipeline options of a `[run]` table.
@@ -213,11 +194,11 @@ fn notify(state: &[sd_notify::NotifyState]) {
 /// Runs the daemon until the source ends, `stop` is raised or a limit is reached; logs a stats
 /// line every `stats_interval` and mirrors it in the systemd status.
 pub fn run(config: &Config, stop: &AtomicBool) -> Result<Report> {
-    config.run.validate()?;
+    config.validate()?;
     let (source, what) = open_source(config)?;
     let stage1 = crate::convert::build_stage1(config, source.first.as_ref())?;
     let (w, h) = stage1.output_size();
-    let sinks = open_sinks(&config.run, w, h, source.pace.unwrap_or(1.0))?;
+    let sinks = open_sinks(config, w, h, source.pace.unwrap_or(1.0))?;
     let outputs: Vec<String> = sinks.iter().map(|s| s.describe()).collect();
     tracing::info!(
         "v2ce {}: {what} -> {} ({}x{}, Stage 1 {}, queues {} x{})",
@@ -230,7 +211,7 @@ pub fn run(config: &Config, stop: &AtomicBool) -> Result<Report> {
         config.run.queue_capacity
     );
     if config.run.wait_for_client {
-        tracing::info!("waiting for a TCP client on {}", config.run.tcp);
+        tracing::info!("waiting for a TCP client");
         notify(&[sd_notify::NotifyState::Status("waiting for a TCP client")]);
         while !sinks.iter().any(|s| s.stats().clients > 0) {
             if !crate::pipeline::clock::sleep_unless(Duration::from_millis(20), &|| {
@@ -425,6 +406,7 @@ pub fn bench(
         .map_err(|_| Error::invalid("bench", "the UDP receiver did not start"))?;
     let mut config = Config {
         run: RunConfig::default(),
+        sink: Vec::new(),
         ..base.clone()
     };
     config.run.replay_speed = speed;
@@ -436,7 +418,7 @@ pub fn bench(
     config.run.udp_format = crate::format::datagram::UdpFormat::SpifTimestamped;
     let (source, what) = open_source(&config)?;
     let stage1 = crate::convert::build_stage1(&config, source.first.as_ref())?;
-    let sinks = open_sinks(&config.run, size.0, size.1, speed)?;
+    let sinks = open_sinks(&config, size.0, size.1, speed)?;
     let stages = Stages {
         stage1,
         sampler: config.stage2.sampler.build(config.stage2.seed),

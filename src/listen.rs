@@ -1,13 +1,13 @@
 //! `v2ce listen`: a receiver for what the daemon sends, the tool a user runs to check a setup
-//! (and what the tests use): UDP datagrams in any of the word formats, or DV's AEDAT 4.0 network
-//! stream over TCP. It counts events and datagrams, measures the rate, the largest gap between
-//! arrivals and, for formats with timestamps, the spread of arrival time minus event time, and
-//! can write what it got to an event file.
+//! (and what the tests use): UDP datagrams in any of the word formats, or a TCP stream (DV's
+//! AEDAT 4.0 network stream or Prophesee RAW EVT 2.0/3.0). It counts events and datagrams,
+//! measures the rate, the largest gap between arrivals and, for formats with timestamps, the
+//! spread of arrival time minus event time, and can write what it got to an event file.
 //!
 //! For plain `spif`, which carries no timestamps, the arrival time is the event time: events
 //! written to a file get their arrival time, in microseconds since the first datagram.
 
-use std::io::Read;
+use std::io::{BufRead, Read};
 use std::net::{TcpStream, UdpSocket};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -31,7 +31,8 @@ pub enum Listen {
         /// The datagram format.
         format: UdpFormat,
     },
-    /// Connect to a daemon's AEDAT 4.0 network stream at `HOST:PORT`.
+    /// Connect to a daemon's TCP stream at `HOST:PORT` (AEDAT 4.0 or RAW EVT 2.0/3.0, told
+    /// apart by its first byte).
     Tcp {
         /// The address to connect to.
         connect: String,
@@ -245,6 +246,35 @@ pub fn listen(
                 inner: stream,
                 give_up: &|| stop.load(Ordering::Relaxed),
             };
+            let mut reader = std::io::BufReader::with_capacity(1 << 16, reader);
+            // A RAW stream starts with its text header ('%'); DV's network stream with the
+            // IOHeader's size.
+            let is_raw = reader.fill_buf().map_err(err)?.first() == Some(&b'%');
+            if is_raw {
+                let header = format::raw::read_header(&mut reader)?;
+                let mut decoder: Box<dyn format::EventDecoder> = match header.evt {
+                    Some(format::raw::Evt::Evt3) => {
+                        Box::new(format::evt3::Decoder::new(reader, &header))
+                    }
+                    _ => Box::new(format::evt2::Decoder::new(reader, &header)),
+                };
+                let size = decoder.size().unwrap_or(options.size);
+                ready(&peer.to_string());
+                let mut tally = Tally::new(out(size)?);
+                let mut events = Vec::new();
+                while !done(&tally) {
+                    events.clear();
+                    // Small reads: a decoder waits until its words have arrived.
+                    let n = decoder.read_events(&mut events, 64)?;
+                    if n == 0 {
+                        break;
+                    }
+                    let at = Instant::now();
+                    tally.arrive(at, n * 4);
+                    tally.events(at, &mut events, true)?;
+                }
+                return tally.finish();
+            }
             let mut reader = aedat4::Reader::new_stream(reader)?;
             let size = reader
                 .event_stream()

@@ -84,7 +84,7 @@ struct ListenArgs {
     /// The datagram format: spif, spif_timestamped, t64_x16_y16_on8, t32_x16_y15_on1.
     #[arg(long, default_value = "spif")]
     format: String,
-    /// Connect to a daemon's AEDAT 4.0 network stream at HOST:PORT.
+    /// Connect to a daemon's TCP stream at HOST:PORT (AEDAT 4.0 or RAW EVT 2.0/3.0).
     #[arg(long)]
     tcp: Option<String>,
     /// Write the events to this file (.aedat4, .raw, .csv); plain spif events get their
@@ -295,9 +295,13 @@ struct RunArgs {
     /// Sensor preset of the physics tier: davis346, dvxplorer, ideal [config default: davis346].
     #[arg(long)]
     preset: Option<String>,
-    /// Serve DV's AEDAT 4.0 network stream on HOST:PORT [config default: "", off].
+    /// Serve an event stream to TCP clients on HOST:PORT [config default: "", off].
     #[arg(long)]
     tcp: Option<String>,
+    /// What TCP clients receive: aedat4 (DV's network stream), evt2 or evt3 (Prophesee RAW,
+    /// a .raw file's bytes) [config default: aedat4].
+    #[arg(long, value_enum)]
+    tcp_format: Option<v2ce::sink::tcp::TcpFormat>,
     /// Hold the source until the first TCP client has connected.
     #[arg(long)]
     wait_for_client: bool,
@@ -587,6 +591,9 @@ fn run_config(args: &RunArgs) -> Result<Config> {
     if let Some(v) = &args.tcp {
         run.tcp = v.clone();
     }
+    if let Some(v) = args.tcp_format {
+        run.tcp_format = v;
+    }
     if let Some(v) = &args.out {
         run.out = v.clone();
     }
@@ -622,7 +629,7 @@ fn run_config(args: &RunArgs) -> Result<Config> {
         config.stage1.preset = v2ce::stage1::Preset::from_name(p)?;
     }
     args.tier.apply(&mut config)?;
-    config.run.validate()?;
+    config.validate()?;
     Ok(config)
 }
 

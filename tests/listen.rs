@@ -138,19 +138,16 @@ fn listen_gets_every_event_the_daemon_sends_in_every_udp_format() {
     }
 }
 
-#[test]
-fn listen_reads_the_daemons_tcp_stream() {
-    let dir = common::temp_dir("listen-tcp");
-    let sent = dir.join("sent.csv");
-    let got = dir.join("got.csv");
+/// Starts `v2ce run` on the small fixture frames with a config, serving TCP on a free port
+/// that is held until a client connects; returns the daemon and the port.
+fn start_tcp_daemon(config: &Path) -> (Child, String) {
     let mut daemon = v2ce()
         .arg("run")
+        .arg("--config")
+        .arg(config)
         .arg("--source")
         .arg(frames())
-        .args(["--udp", "", "--tcp", "127.0.0.1:0", "--wait-for-client"])
         .args(["--queue-policy", "block", "--replay-speed", "4"])
-        .arg("--out")
-        .arg(&sent)
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
@@ -168,16 +165,133 @@ fn listen_reads_the_daemons_tcp_stream() {
         }
     };
     std::thread::spawn(move || for _ in log.lines() {});
-    let (listener, _, out) = start_listen(&[
-        "--tcp",
-        &format!("127.0.0.1:{port}"),
+    (daemon, port)
+}
+
+/// A config with the TCP stream in `tcp_format` and a file output added as a `[[sink]]`.
+fn tcp_config(dir: &Path, tcp_format: &str, file: &Path, evt: u8) -> PathBuf {
+    let path = dir.join(format!("{tcp_format}.toml"));
+    std::fs::write(
+        &path,
+        format!(
+            "[run]\nudp = \"\"\ntcp = \"127.0.0.1:0\"\ntcp_format = \"{tcp_format}\"\nwait_for_client = true\n\n[[sink]]\ntype = \"file\"\npath = {:?}\nevt = {evt}\n",
+            file.to_str().unwrap()
+        ),
+    )
+    .unwrap();
+    path
+}
+
+#[test]
+fn listen_reads_the_daemons_tcp_stream() {
+    let dir = common::temp_dir("listen-tcp");
+    for (tcp_format, file) in [("aedat4", "sent.csv"), ("evt2", "sent.raw")] {
+        let sent = dir.join(format!("{tcp_format}-{file}"));
+        let got = dir.join(format!("{tcp_format}-got.csv"));
+        let (mut daemon, port) = start_tcp_daemon(&tcp_config(&dir, tcp_format, &sent, 2));
+        let (listener, _, out) = start_listen(&[
+            "--tcp",
+            &format!("127.0.0.1:{port}"),
+            "--out",
+            got.to_str().unwrap(),
+        ]);
+        assert!(daemon.wait().unwrap().success());
+        let report = finish_listen(listener, out);
+        let sent_events = read(&sent);
+        assert!(!sent_events.is_empty());
+        assert_eq!(
+            report["events"].as_u64(),
+            Some(sent_events.len() as u64),
+            "{tcp_format}"
+        );
+        assert_eq!(read(&got), sent_events, "{tcp_format}");
+    }
+}
+
+#[test]
+fn a_saved_raw_tcp_stream_is_the_daemons_raw_file_byte_for_byte() {
+    use std::io::Read;
+    let dir = common::temp_dir("tcp-raw-bytes");
+    for (tcp_format, evt) in [("evt2", 2), ("evt3", 3)] {
+        let sent = dir.join(format!("{tcp_format}.raw"));
+        let (mut daemon, port) = start_tcp_daemon(&tcp_config(&dir, tcp_format, &sent, evt));
+        let mut client = std::net::TcpStream::connect(format!("127.0.0.1:{port}")).unwrap();
+        client
+            .set_read_timeout(Some(std::time::Duration::from_secs(60)))
+            .unwrap();
+        let mut bytes = Vec::new();
+        client.read_to_end(&mut bytes).unwrap();
+        assert!(daemon.wait().unwrap().success());
+        let file = std::fs::read(&sent).unwrap();
+        assert!(file.len() > 1000, "{tcp_format}: {} bytes", file.len());
+        assert!(
+            bytes == file,
+            "{tcp_format}: the stream differs from the file"
+        );
+        assert!(!read(&sent).is_empty());
+    }
+}
+
+#[test]
+fn sink_tables_send_to_several_udp_receivers_at_once() {
+    let dir = common::temp_dir("listen-two-udp");
+    let sent = dir.join("sent.csv");
+    let got = [dir.join("got-0.csv"), dir.join("got-1.csv")];
+    let (l0, at0, out0) = start_listen(&[
+        "--udp",
+        "127.0.0.1:0",
+        "--format",
+        "t64_x16_y16_on8",
         "--out",
-        got.to_str().unwrap(),
+        got[0].to_str().unwrap(),
     ]);
-    assert!(daemon.wait().unwrap().success());
-    let report = finish_listen(listener, out);
+    let (l1, at1, out1) = start_listen(&[
+        "--udp",
+        "127.0.0.1:0",
+        "--format",
+        "spif_timestamped",
+        "--out",
+        got[1].to_str().unwrap(),
+    ]);
+    let config = dir.join("two.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[run]\nudp = \"\"\nout = {:?}\n\n[[sink]]\ntype = \"udp\"\naddress = \"{at0}\"\nformat = \"t64_x16_y16_on8\"\n\n[[sink]]\ntype = \"udp\"\naddress = \"{at1}\"\nformat = \"spif_timestamped\"\npayload = 1024\nemit = \"asap\"\n",
+            sent.to_str().unwrap()
+        ),
+    )
+    .unwrap();
+    let run = v2ce()
+        .arg("run")
+        .arg("--config")
+        .arg(&config)
+        .arg("--source")
+        .arg(frames())
+        .args(["--queue-policy", "block", "--replay-speed", "4", "--json"])
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let daemon: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
+    let sinks = daemon["stats"]["sinks"].as_array().unwrap();
+    assert_eq!(sinks.len(), 3, "{sinks:?}");
     let sent_events = read(&sent);
     assert!(!sent_events.is_empty());
-    assert_eq!(report["events"].as_u64(), Some(sent_events.len() as u64));
-    assert_eq!(read(&got), sent_events);
+    for (i, (l, out)) in [(l0, out0), (l1, out1)].into_iter().enumerate() {
+        let report = finish_listen(l, out);
+        assert_eq!(
+            report["events"].as_u64(),
+            Some(sent_events.len() as u64),
+            "{i}"
+        );
+        let got_events = read(&got[i]);
+        for (g, s) in got_events.iter().zip(&sent_events) {
+            assert_eq!((g.x, g.y, g.on), (s.x, s.y, s.on), "{i}");
+            assert_eq!(g.t & 0xFFFF_FFFF, s.t & 0xFFFF_FFFF, "{i}");
+        }
+    }
 }

@@ -128,6 +128,11 @@ impl<W: Write> Encoder<W> {
             .map_err(output_error)
     }
 
+    /// The writer, e.g. to take the bytes written so far from a `Vec<u8>`.
+    pub fn get_mut(&mut self) -> &mut W {
+        &mut self.writer
+    }
+
     /// Flushes and returns the writer.
     pub fn into_inner(mut self) -> Result<W> {
         EventEncoder::finish(&mut self)?;

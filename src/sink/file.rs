@@ -2,10 +2,55 @@
 
 use std::path::{Path, PathBuf};
 
-use super::{Sink, SinkStats};
-use crate::error::Result;
+use super::{Sink, SinkContext, SinkStats};
+use crate::error::{Error, Result};
 use crate::event::Event;
 use crate::format::{self, EventEncoder, Format};
+
+/// A `[[sink]]` table of `type = "file"`.
+#[derive(Debug, Clone, PartialEq, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FileSinkConfig {
+    /// The file; its extension picks the format (`.aedat4` with LZ4 packets, `.raw`, `.csv`,
+    /// `.npz`).
+    pub path: String,
+    /// The EVT version of a `.raw` file: 2 (the default) or 3.
+    #[serde(default)]
+    pub evt: Option<u8>,
+}
+
+impl FileSinkConfig {
+    /// A file sink writing `path`.
+    pub fn new(path: &str) -> Self {
+        FileSinkConfig {
+            path: path.to_string(),
+            evt: None,
+        }
+    }
+
+    fn format(&self) -> Result<Format> {
+        Format::for_output(Path::new(&self.path), self.evt, format::Compression::Lz4)
+    }
+
+    /// Checks the path and format.
+    pub fn validate(&self) -> Result<()> {
+        if self.path.is_empty() {
+            return Err(Error::invalid("file sink", "path is empty".to_string()));
+        }
+        self.format().map(|_| ())
+    }
+
+    /// Creates the file.
+    pub fn build(&self, context: &SinkContext) -> Result<Box<dyn Sink>> {
+        let path = Path::new(&self.path);
+        Ok(Box::new(FileSink::create(
+            path,
+            self.format()?,
+            context.width,
+            context.height,
+        )?))
+    }
+}
 
 /// Writes events to a file.
 pub struct FileSink {

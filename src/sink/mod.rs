@@ -1,6 +1,10 @@
 //! Where events go: one [`Sink`] trait, implemented by a file ([`file`]), UDP datagrams
-//! ([`udp`]) and DV's AEDAT 4.0 network stream over TCP ([`tcp`]). `convert` and the daemon
-//! hand each sink time-ordered batches of events.
+//! ([`udp`]) and byte streams over TCP ([`tcp`]: DV's AEDAT 4.0 network stream or Prophesee
+//! RAW). `convert` and the daemon hand each sink time-ordered batches of events.
+//!
+//! Each kind of sink has a typed configuration (one `[[sink]]` table of the TOML file, see
+//! [`SinkConfig`]) that builds it, so the daemon opens its outputs as a map over a list of
+//! configurations; adding a sink is one module plus one variant.
 //!
 //! A network sink never blocks its caller on a receiver: what cannot be sent at once is dropped
 //! and counted in [`SinkStats`].
@@ -14,6 +18,57 @@ use std::time::Instant;
 
 use crate::error::Result;
 use crate::event::Event;
+
+/// One output as configured: a `[[sink]]` table with its `type` (the `[run]` keys `udp`, `tcp`
+/// and `out` are shorthands for one sink each).
+#[derive(Debug, Clone, PartialEq, serde::Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case")]
+pub enum SinkConfig {
+    /// UDP datagrams to a receiver.
+    Udp(udp::UdpSinkConfig),
+    /// A byte stream served to TCP clients.
+    Tcp(tcp::TcpSinkConfig),
+    /// An event file.
+    File(file::FileSinkConfig),
+}
+
+/// What every sink is built for.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SinkContext {
+    /// Sensor width.
+    pub width: u16,
+    /// Sensor height.
+    pub height: u16,
+    /// How many times faster than the wall clock the frames' times run (a file's replay speed;
+    /// 1 for a camera).
+    pub speed: f64,
+}
+
+impl SinkConfig {
+    /// Checks the values that TOML types cannot.
+    pub fn validate(&self) -> Result<()> {
+        match self {
+            SinkConfig::Udp(c) => c.validate(),
+            SinkConfig::Tcp(c) => c.validate(),
+            SinkConfig::File(c) => c.validate(),
+        }
+    }
+
+    /// Opens the sink.
+    pub fn build(&self, context: &SinkContext) -> Result<Box<dyn Sink>> {
+        self.validate()?;
+        match self {
+            SinkConfig::Udp(c) => c.build(context),
+            SinkConfig::Tcp(c) => c.build(context),
+            SinkConfig::File(c) => c.build(context),
+        }
+    }
+
+    /// Whether clients connect to it (a TCP server), which `wait_for_client` waits for.
+    pub fn serves_clients(&self) -> bool {
+        matches!(self, SinkConfig::Tcp(_))
+    }
+}
 
 /// Counters a sink keeps.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]

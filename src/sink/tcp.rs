@@ -1,19 +1,19 @@
-//! DV's AEDAT 4.0 network stream over TCP, served to any number of clients.
+//! Event streams over TCP, served to any number of clients, in one of three byte streams:
 //!
-//! On connect a client receives a `u32` size and the `IOHeader` (no compression, one event
-//! stream with the sensor size in its XML description), then one message per packet: `i32`
-//! stream id 0, `i32` size, and a size-prefixed `EventPacket` flatbuffer of up to
-//! [`aedat4::PACKET_EVENTS`] events. This is what `dv_processing.io.NetworkReader` and DV's
-//! network input read.
+//! | format | what a client receives |
+//! |---|---|
+//! | `aedat4` | DV's AEDAT 4.0 network stream: a `u32` size and the `IOHeader` (no compression, one event stream with the sensor size in its XML description), then one message per packet: `i32` stream id 0, `i32` size, and a size-prefixed `EventPacket` flatbuffer of up to [`aedat4::PACKET_EVENTS`] events. `dv_processing.io.NetworkReader` and DV's network input read it. |
+//! | `evt2`, `evt3` | Prophesee RAW: the text header, then EVT 2.0 or 3.0 words, exactly the bytes the file sink writes for the same events, so a client that saves the stream has a `.raw` file every RAW reader opens. |
 //!
-//! Each client has its own writer thread and a bounded queue of packets. [`TcpSink::send`] never
-//! waits: a client whose queue is full skips that packet (counted), and one that has skipped
-//! `max_skipped` packets in a row, or whose socket fails or stalls past the write timeout, is
-//! disconnected. The other clients are not slowed.
+//! Each client has its own writer thread, its own encoder (a client that connects later gets
+//! a stream of its own that starts with a header) and a bounded queue of batches. [`TcpSink::send`]
+//! never waits: a client whose queue is full skips that batch (counted), and one that has
+//! skipped `max_skipped` batches in a row, or whose socket fails or stalls past the write
+//! timeout, is disconnected. The other clients are not slowed.
 
 use std::io::Write;
 use std::net::{SocketAddr, TcpListener, TcpStream, ToSocketAddrs};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::Duration;
@@ -21,33 +21,118 @@ use std::time::Duration;
 use crossbeam_channel::{bounded, Sender, TrySendError};
 use flatbuffers::FlatBufferBuilder;
 
-use super::{Sink, SinkStats};
+use super::{Sink, SinkContext, SinkStats};
 use crate::error::{Error, Result};
 use crate::event::Event;
-use crate::format;
 use crate::format::aedat4::{self, flatbuf, Compression};
+use crate::format::{self, evt2, evt3, EventEncoder};
+
+/// The byte stream a TCP client receives.
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Default,
+    serde::Deserialize,
+    serde::Serialize,
+    clap::ValueEnum,
+)]
+#[serde(rename_all = "snake_case")]
+pub enum TcpFormat {
+    /// DV's AEDAT 4.0 network stream.
+    #[default]
+    Aedat4,
+    /// Prophesee RAW EVT 2.0 (header, then words).
+    Evt2,
+    /// Prophesee RAW EVT 3.0 (header, then words).
+    Evt3,
+}
+
+impl TcpFormat {
+    /// The name in configs and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            TcpFormat::Aedat4 => "aedat4",
+            TcpFormat::Evt2 => "evt2",
+            TcpFormat::Evt3 => "evt3",
+        }
+    }
+
+    /// What the format is called in logs.
+    fn long_name(self) -> &'static str {
+        match self {
+            TcpFormat::Aedat4 => "AEDAT 4.0 network stream",
+            TcpFormat::Evt2 => "Prophesee RAW EVT 2.0",
+            TcpFormat::Evt3 => "Prophesee RAW EVT 3.0",
+        }
+    }
+
+    /// Most events in one queued batch: an AEDAT 4.0 packet's worth; for RAW a whole batch of
+    /// [`TcpSink::send`], as the file sink's encoder gets it (EVT 3.0 words depend on where a
+    /// batch ends, and the stream must match the file's bytes).
+    fn batch_events(self) -> usize {
+        match self {
+            TcpFormat::Aedat4 => aedat4::PACKET_EVENTS,
+            TcpFormat::Evt2 | TcpFormat::Evt3 => usize::MAX,
+        }
+    }
+}
+
+/// A `[[sink]]` table of `type = "tcp"` (the `[run]` keys `tcp` and `tcp_format` are a
+/// shorthand for one).
+#[derive(Debug, Clone, PartialEq, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TcpSinkConfig {
+    /// Address to listen on, `HOST:PORT`.
+    pub address: String,
+    /// The byte stream clients receive: aedat4 (the default), evt2 or evt3.
+    #[serde(default)]
+    pub format: TcpFormat,
+}
+
+impl TcpSinkConfig {
+    /// Checks the address is set.
+    pub fn validate(&self) -> Result<()> {
+        if self.address.is_empty() {
+            return Err(bad("address is empty".into()));
+        }
+        Ok(())
+    }
+
+    /// Starts listening.
+    pub fn build(&self, context: &SinkContext) -> Result<Box<dyn Sink>> {
+        let mut c = TcpConfig::new(&self.address, context.width, context.height);
+        c.format = self.format;
+        Ok(Box::new(TcpSink::new(c)?))
+    }
+}
 
 /// Settings of a [`TcpSink`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct TcpConfig {
     /// Address to listen on, `host:port` (port 0 picks a free one).
     pub address: String,
+    /// The byte stream clients receive.
+    pub format: TcpFormat,
     /// Sensor size announced in the header.
     pub size: (u16, u16),
-    /// Packets each client may have waiting.
+    /// Batches each client may have waiting.
     pub queue_packets: usize,
-    /// A client that skips this many packets in a row is disconnected.
+    /// A client that skips this many batches in a row is disconnected.
     pub max_skipped: u64,
     /// A write to a client that blocks this long disconnects it.
     pub write_timeout: Duration,
 }
 
 impl TcpConfig {
-    /// Settings for `address` and a `width x height` sensor: 256 queued packets per client,
-    /// disconnect after 1024 skipped in a row or a write stalled for 2 s.
+    /// Settings for an AEDAT 4.0 stream on `address` for a `width x height` sensor: 256 queued
+    /// batches per client, disconnect after 1024 skipped in a row or a write stalled for 2 s.
     pub fn new(address: &str, width: u16, height: u16) -> Self {
         TcpConfig {
             address: address.to_string(),
+            format: TcpFormat::Aedat4,
             size: (width, height),
             queue_packets: 256,
             max_skipped: 1024,
@@ -56,8 +141,79 @@ impl TcpConfig {
     }
 }
 
+/// One client's encoder: turns its batches into the bytes of its stream.
+enum ClientEncoder {
+    Aedat4 {
+        header: Arc<Vec<u8>>,
+        fbb: FlatBufferBuilder<'static>,
+    },
+    Evt2(evt2::Encoder<Vec<u8>>),
+    Evt3(evt3::Encoder<Vec<u8>>),
+}
+
+impl ClientEncoder {
+    fn new(format: TcpFormat, (w, h): (u16, u16)) -> Result<Self> {
+        Ok(match format {
+            TcpFormat::Aedat4 => {
+                aedat4::check_size(w, h)?;
+                let xml = aedat4::description(w, h, Compression::None, "v2ce");
+                ClientEncoder::Aedat4 {
+                    header: Arc::new(aedat4::io_header_bytes(Compression::None, -1, &xml)),
+                    fbb: FlatBufferBuilder::new(),
+                }
+            }
+            TcpFormat::Evt2 => ClientEncoder::Evt2(evt2::Encoder::new(Vec::new(), w, h)?),
+            TcpFormat::Evt3 => ClientEncoder::Evt3(evt3::Encoder::new(Vec::new(), w, h)?),
+        })
+    }
+
+    /// What a client receives first.
+    fn greeting(&self, out: &mut Vec<u8>) {
+        if let ClientEncoder::Aedat4 { header, .. } = self {
+            out.extend_from_slice(header);
+        }
+    }
+
+    fn encode(&mut self, events: &[Event], out: &mut Vec<u8>) -> Result<()> {
+        match self {
+            ClientEncoder::Aedat4 { fbb, .. } => {
+                flatbuf::build_event_packet(fbb, events);
+                let data = fbb.finished_data();
+                out.extend_from_slice(&0i32.to_le_bytes());
+                out.extend_from_slice(&(data.len() as i32).to_le_bytes());
+                out.extend_from_slice(data);
+            }
+            ClientEncoder::Evt2(e) => {
+                e.write(events)?;
+                out.append(e.get_mut());
+            }
+            ClientEncoder::Evt3(e) => {
+                e.write(events)?;
+                out.append(e.get_mut());
+            }
+        }
+        Ok(())
+    }
+
+    /// What a client receives last (a RAW stream without events still gets its header).
+    fn end(&mut self, out: &mut Vec<u8>) -> Result<()> {
+        match self {
+            ClientEncoder::Aedat4 { .. } => {}
+            ClientEncoder::Evt2(e) => {
+                e.finish()?;
+                out.append(e.get_mut());
+            }
+            ClientEncoder::Evt3(e) => {
+                e.finish()?;
+                out.append(e.get_mut());
+            }
+        }
+        Ok(())
+    }
+}
+
 struct Client {
-    tx: Sender<Arc<Vec<u8>>>,
+    tx: Sender<Arc<[Event]>>,
     alive: Arc<AtomicBool>,
     skipped_in_a_row: u64,
     thread: JoinHandle<()>,
@@ -70,7 +226,8 @@ pub struct TcpSink {
     clients: Arc<Mutex<Vec<Client>>>,
     stop: Arc<AtomicBool>,
     acceptor: Option<JoinHandle<()>>,
-    fbb: FlatBufferBuilder<'static>,
+    /// Bytes the client threads have written.
+    written: Arc<AtomicU64>,
     stats: SinkStats,
     last_t: i64,
 }
@@ -82,7 +239,8 @@ fn bad(m: String) -> Error {
 impl TcpSink {
     /// Listens on `config.address`; clients may connect from now on.
     pub fn new(config: TcpConfig) -> Result<Self> {
-        aedat4::check_size(config.size.0, config.size.1)?;
+        // Checks the size against the format.
+        ClientEncoder::new(config.format, config.size)?;
         if config.queue_packets == 0 {
             return Err(bad("queue_packets must be at least 1".into()));
         }
@@ -98,16 +256,23 @@ impl TcpSink {
         listener
             .set_nonblocking(true)
             .map_err(|e| bad(e.to_string()))?;
-        let xml = aedat4::description(config.size.0, config.size.1, Compression::None, "v2ce");
-        let header = Arc::new(aedat4::io_header_bytes(Compression::None, -1, &xml));
         let clients = Arc::new(Mutex::new(Vec::new()));
         let stop = Arc::new(AtomicBool::new(false));
+        let written = Arc::new(AtomicU64::new(0));
         let acceptor = {
-            let (clients, stop) = (clients.clone(), stop.clone());
-            let (queue, timeout) = (config.queue_packets, config.write_timeout);
+            let accept = Acceptor {
+                listener,
+                format: config.format,
+                size: config.size,
+                clients: clients.clone(),
+                stop: stop.clone(),
+                written: written.clone(),
+                queue: config.queue_packets,
+                timeout: config.write_timeout,
+            };
             std::thread::Builder::new()
                 .name("v2ce-tcp-accept".into())
-                .spawn(move || accept_loop(listener, header, clients, stop, queue, timeout))
+                .spawn(move || accept.run())
                 .map_err(|e| bad(e.to_string()))?
         };
         Ok(TcpSink {
@@ -116,7 +281,7 @@ impl TcpSink {
             clients,
             stop,
             acceptor: Some(acceptor),
-            fbb: FlatBufferBuilder::new(),
+            written,
             stats: SinkStats::default(),
             last_t: i64::MIN,
         })
@@ -131,77 +296,86 @@ impl TcpSink {
     pub fn client_count(&self) -> usize {
         self.clients.lock().map_or(0, |c| c.len())
     }
-
-    fn packet(&mut self, events: &[Event]) -> Arc<Vec<u8>> {
-        flatbuf::build_event_packet(&mut self.fbb, events);
-        let data = self.fbb.finished_data();
-        let mut msg = Vec::with_capacity(data.len() + 8);
-        msg.extend_from_slice(&0i32.to_le_bytes());
-        msg.extend_from_slice(&(data.len() as i32).to_le_bytes());
-        msg.extend_from_slice(data);
-        Arc::new(msg)
-    }
 }
 
-fn accept_loop(
+/// The listening side: accepts clients and starts a writer thread for each.
+struct Acceptor {
     listener: TcpListener,
-    header: Arc<Vec<u8>>,
+    format: TcpFormat,
+    size: (u16, u16),
     clients: Arc<Mutex<Vec<Client>>>,
     stop: Arc<AtomicBool>,
+    written: Arc<AtomicU64>,
     queue: usize,
     timeout: Duration,
-) {
-    while !stop.load(Ordering::Relaxed) {
-        match listener.accept() {
-            Ok((stream, peer)) => {
-                let (tx, rx) = bounded::<Arc<Vec<u8>>>(queue);
-                let alive = Arc::new(AtomicBool::new(true));
-                let header = header.clone();
-                let flag = alive.clone();
-                let thread = std::thread::Builder::new()
-                    .name(format!("v2ce-tcp-{peer}"))
-                    .spawn(move || {
-                        let _ = serve(stream, &header, rx, timeout);
-                        flag.store(false, Ordering::Relaxed);
-                    });
-                match (thread, clients.lock()) {
-                    (Ok(thread), Ok(mut list)) => list.push(Client {
-                        tx,
-                        alive,
-                        skipped_in_a_row: 0,
-                        thread,
-                    }),
-                    _ => return,
+}
+
+impl Acceptor {
+    fn run(self) {
+        while !self.stop.load(Ordering::Relaxed) {
+            match self.listener.accept() {
+                Ok((stream, peer)) => {
+                    let Ok(encoder) = ClientEncoder::new(self.format, self.size) else {
+                        return;
+                    };
+                    let (tx, rx) = bounded::<Arc<[Event]>>(self.queue);
+                    let alive = Arc::new(AtomicBool::new(true));
+                    let flag = alive.clone();
+                    let (timeout, written) = (self.timeout, self.written.clone());
+                    let thread = std::thread::Builder::new()
+                        .name(format!("v2ce-tcp-{peer}"))
+                        .spawn(move || {
+                            let _ = serve(stream, encoder, rx, timeout, &written);
+                            flag.store(false, Ordering::Relaxed);
+                        });
+                    match (thread, self.clients.lock()) {
+                        (Ok(thread), Ok(mut list)) => list.push(Client {
+                            tx,
+                            alive,
+                            skipped_in_a_row: 0,
+                            thread,
+                        }),
+                        _ => return,
+                    }
                 }
+                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
+                    std::thread::sleep(Duration::from_millis(5))
+                }
+                Err(_) => std::thread::sleep(Duration::from_millis(50)),
             }
-            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
-                std::thread::sleep(Duration::from_millis(5))
-            }
-            Err(_) => std::thread::sleep(Duration::from_millis(50)),
         }
     }
 }
 
 fn serve(
     mut stream: TcpStream,
-    header: &[u8],
-    rx: crossbeam_channel::Receiver<Arc<Vec<u8>>>,
+    mut encoder: ClientEncoder,
+    rx: crossbeam_channel::Receiver<Arc<[Event]>>,
     timeout: Duration,
-) -> std::io::Result<()> {
-    stream.set_nonblocking(false)?;
-    stream.set_nodelay(true)?;
-    stream.set_write_timeout(Some(timeout))?;
-    stream.write_all(header)?;
-    for packet in rx {
-        stream.write_all(&packet)?;
+    written: &AtomicU64,
+) -> Result<()> {
+    let io = |e: std::io::Error| bad(format!("client: {e}"));
+    stream.set_nonblocking(false).map_err(io)?;
+    stream.set_nodelay(true).map_err(io)?;
+    stream.set_write_timeout(Some(timeout)).map_err(io)?;
+    let mut buf = Vec::new();
+    encoder.greeting(&mut buf);
+    for batch in rx {
+        encoder.encode(&batch, &mut buf)?;
+        stream.write_all(&buf).map_err(io)?;
+        written.fetch_add(buf.len() as u64, Ordering::Relaxed);
+        buf.clear();
     }
-    stream.flush()?;
-    stream.shutdown(std::net::Shutdown::Write)
+    encoder.end(&mut buf)?;
+    stream.write_all(&buf).map_err(io)?;
+    written.fetch_add(buf.len() as u64, Ordering::Relaxed);
+    stream.flush().map_err(io)?;
+    stream.shutdown(std::net::Shutdown::Write).map_err(io)
 }
 
 impl Sink for TcpSink {
     fn describe(&self) -> String {
-        format!("tcp {} (AEDAT 4.0 network stream)", self.local)
+        format!("tcp {} ({})", self.local, self.config.format.long_name())
     }
 
     fn send(&mut self, events: &[Event]) -> Result<()> {
@@ -211,8 +385,8 @@ impl Sink for TcpSink {
             format::check_event(e, self.last_t, w, h)?;
             self.last_t = e.t;
         }
-        for chunk in events.chunks(aedat4::PACKET_EVENTS) {
-            let packet = self.packet(chunk);
+        for chunk in events.chunks(self.config.format.batch_events()) {
+            let batch: Arc<[Event]> = Arc::from(chunk);
             let mut delivered = false;
             let max_skipped = self.config.max_skipped;
             let mut list = self
@@ -224,12 +398,11 @@ impl Sink for TcpSink {
                 let c = &mut list[i];
                 let mut drop_client = !c.alive.load(Ordering::Relaxed);
                 if !drop_client {
-                    match c.tx.try_send(packet.clone()) {
+                    match c.tx.try_send(batch.clone()) {
                         Ok(()) => {
                             delivered = true;
                             c.skipped_in_a_row = 0;
                             self.stats.messages_sent += 1;
-                            self.stats.bytes_sent += packet.len() as u64;
                         }
                         Err(TrySendError::Full(_)) => {
                             c.skipped_in_a_row += 1;
@@ -280,6 +453,7 @@ impl Sink for TcpSink {
     fn stats(&self) -> SinkStats {
         let mut s = self.stats;
         s.clients = self.client_count() as u64;
+        s.bytes_sent = self.written.load(Ordering::Relaxed);
         s
     }
 }
@@ -402,5 +576,107 @@ mod tests {
         assert_eq!(s.clients, 1, "the stalled client was not dropped: {s:?}");
         assert_eq!(s.clients_dropped, 1, "{s:?}");
         drop(stalled);
+    }
+
+    /// Reads a whole stream until the server closes it.
+    fn read_to_end(stream: TcpStream) -> Vec<u8> {
+        use std::io::Read;
+        let mut stream = stream;
+        stream
+            .set_read_timeout(Some(Duration::from_secs(20)))
+            .unwrap();
+        let mut bytes = Vec::new();
+        stream.read_to_end(&mut bytes).unwrap();
+        bytes
+    }
+
+    #[test]
+    fn raw_streams_are_the_file_sinks_bytes_and_a_late_client_gets_a_stream_of_its_own() {
+        use crate::format::Format;
+        use crate::sink::file::FileSink;
+        let events: Vec<Event> = (0..30_000i64)
+            .map(|i| {
+                // Runs of neighbours on a row (EVT 3.0 vectors) and a gap past EVT 2.0's
+                // time-high period.
+                let t = 5_000_000 + i * 37 + if i > 20_000 { 3_000_000 } else { 0 };
+                Event::new(
+                    t - t % 5,
+                    ((i * 7) % 64) as u16,
+                    ((i / 9) % 48) as u16,
+                    i % 3 != 0,
+                )
+            })
+            .collect();
+        let dir = std::env::temp_dir().join(format!("v2ce-tcp-raw-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        for (format, file_format) in [
+            (TcpFormat::Evt2, Format::Evt2),
+            (TcpFormat::Evt3, Format::Evt3),
+        ] {
+            let mut config = TcpConfig::new("127.0.0.1:0", 64, 48);
+            config.format = format;
+            let mut sink = TcpSink::new(config).unwrap();
+            let path = dir.join(format!("{}.raw", format.name()));
+            let mut file = FileSink::create(&path, file_format, 64, 48).unwrap();
+            let first = TcpStream::connect(sink.local_addr()).unwrap();
+            let first = std::thread::spawn(move || read_to_end(first));
+            wait_for_clients(&sink, 1);
+            let batches: Vec<&[Event]> = events.chunks(1_777).collect();
+            let (early, late) = batches.split_at(10);
+            for b in early {
+                sink.send(b).unwrap();
+                file.send(b).unwrap();
+            }
+            let second = TcpStream::connect(sink.local_addr()).unwrap();
+            let second = std::thread::spawn(move || read_to_end(second));
+            wait_for_clients(&sink, 2);
+            for b in late {
+                sink.send(b).unwrap();
+                file.send(b).unwrap();
+            }
+            sink.finish().unwrap();
+            file.finish().unwrap();
+            let whole = first.join().unwrap();
+            assert_eq!(whole, std::fs::read(&path).unwrap(), "{}", format.name());
+            let s = sink.stats();
+            assert_eq!((s.events_sent, s.events_dropped), (30_000, 0));
+            // The late client's stream is a RAW file of its own: a header, then the events
+            // from when it joined.
+            let tail = second.join().unwrap();
+            assert!(tail.starts_with(b"% evt "), "{}", format.name());
+            let late_path = dir.join(format!("{}-late.raw", format.name()));
+            std::fs::write(&late_path, &tail).unwrap();
+            let back = crate::format::read_events(&late_path).unwrap();
+            let since = early.iter().map(|b| b.len()).sum::<usize>();
+            assert_eq!(back.events.events(), &events[since..], "{}", format.name());
+            assert_eq!((back.width, back.height), (64, 48));
+            assert_eq!(s.bytes_sent, (whole.len() + tail.len()) as u64);
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_raw_client_without_events_still_gets_a_header() {
+        let mut config = TcpConfig::new("127.0.0.1:0", 64, 48);
+        config.format = TcpFormat::Evt2;
+        let mut sink = TcpSink::new(config).unwrap();
+        let c = TcpStream::connect(sink.local_addr()).unwrap();
+        let c = std::thread::spawn(move || read_to_end(c));
+        wait_for_clients(&sink, 1);
+        sink.finish().unwrap();
+        let bytes = c.join().unwrap();
+        assert!(
+            bytes.starts_with(b"% evt 2.0\n"),
+            "{:?}",
+            String::from_utf8_lossy(&bytes)
+        );
+        assert!(bytes.ends_with(b"% end\n"));
+    }
+
+    #[test]
+    fn a_size_the_format_cannot_hold_is_refused() {
+        let mut config = TcpConfig::new("127.0.0.1:0", 4096, 48);
+        config.format = TcpFormat::Evt3;
+        assert!(TcpSink::new(config).is_err());
     }
 }

@@ -18,10 +18,121 @@ use std::net::{SocketAddr, ToSocketAddrs, UdpSocket};
 use std::time::{Duration, Instant};
 
 use super::emit::EmitClock;
-use super::{ClosedBy, Sink, SinkStats};
+use super::{ClosedBy, Sink, SinkContext, SinkStats};
 use crate::error::{Error, Result};
 use crate::event::Event;
 pub use crate::format::datagram::UdpFormat;
+
+/// When a UDP sink sends events, as configured.
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Default,
+    serde::Deserialize,
+    serde::Serialize,
+    clap::ValueEnum,
+)]
+#[serde(rename_all = "kebab-case")]
+pub enum EmitMode {
+    /// Each event at its own time plus a constant delay (`emit_delay_ms`).
+    #[default]
+    EventTime,
+    /// As fast as the socket takes them.
+    Asap,
+}
+
+/// A `[[sink]]` table of `type = "udp"` (the `[run]` keys `udp`, `udp_format`, `udp_payload`,
+/// `udp_rate`, `emit`, `emit_delay_ms` and `emit_slice_ms` are a shorthand for one).
+#[derive(Debug, Clone, PartialEq, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct UdpSinkConfig {
+    /// Receiver address, `HOST:PORT`.
+    pub address: String,
+    /// The datagram format: spif, spif_timestamped, t64_x16_y16_on8, t32_x16_y15_on1.
+    pub format: UdpFormat,
+    /// Largest datagram payload in bytes (512: read whole by every common receiver).
+    pub payload: usize,
+    /// Most datagrams per second (0: as fast as the socket takes them).
+    pub rate: u32,
+    /// When events leave: "event-time" or "asap".
+    pub emit: EmitMode,
+    /// How far behind the frames events leave at event time, milliseconds.
+    pub emit_delay_ms: f64,
+    /// Longest spread of due times in one datagram at event time, milliseconds.
+    pub emit_slice_ms: f64,
+}
+
+impl Default for UdpSinkConfig {
+    fn default() -> Self {
+        UdpSinkConfig {
+            address: String::new(),
+            format: UdpFormat::Spif,
+            payload: 512,
+            rate: 0,
+            emit: EmitMode::EventTime,
+            emit_delay_ms: 100.0,
+            emit_slice_ms: 0.5,
+        }
+    }
+}
+
+impl UdpSinkConfig {
+    /// Checks the values that TOML types cannot.
+    pub fn validate(&self) -> Result<()> {
+        let bad = |m: String| Err(Error::invalid("UDP sink", m));
+        if self.address.is_empty() {
+            return bad("address is empty".into());
+        }
+        let bytes = self.format.event_bytes();
+        if !(bytes..=65_507).contains(&self.payload) {
+            return bad(format!(
+                "payload {} bytes (must hold one {bytes}-byte {} event and fit a datagram, 65507)",
+                self.payload,
+                self.format.name()
+            ));
+        }
+        if !(self.emit_delay_ms.is_finite() && (0.0..=60_000.0).contains(&self.emit_delay_ms)) {
+            return bad(format!(
+                "emit_delay_ms {} (must be 0 to 60000)",
+                self.emit_delay_ms
+            ));
+        }
+        if !(self.emit_slice_ms.is_finite()
+            && self.emit_slice_ms > 0.0
+            && self.emit_slice_ms <= 1000.0)
+        {
+            return bad(format!(
+                "emit_slice_ms {} (must be > 0 and at most 1000)",
+                self.emit_slice_ms
+            ));
+        }
+        Ok(())
+    }
+
+    /// The sink's settings for frames whose times run `speed` times faster than the wall clock.
+    pub fn settings(&self, speed: f64) -> UdpConfig {
+        let mut c = UdpConfig::new(&self.address, self.format);
+        c.max_datagrams_per_s = (self.rate > 0).then_some(f64::from(self.rate));
+        c.max_payload = self.payload;
+        c.emission = match self.emit {
+            EmitMode::Asap => Emission::Asap,
+            EmitMode::EventTime => Emission::EventTime {
+                delay: Duration::from_secs_f64(self.emit_delay_ms / 1e3),
+                slice: Duration::from_secs_f64(self.emit_slice_ms / 1e3),
+                speed,
+            },
+        };
+        c
+    }
+
+    /// Opens the socket.
+    pub fn build(&self, context: &SinkContext) -> Result<Box<dyn Sink>> {
+        Ok(Box::new(UdpSink::new(self.settings(context.speed))?))
+    }
+}
 
 /// When events leave.
 #[derive(Debug, Clone, Copy, PartialEq)]
