@@ -208,26 +208,29 @@ impl RuntimeArgs {
 /// `[stage1.learned]`).
 #[derive(Args)]
 struct TierArgs {
-    /// Stage 1 tier: physics (the pixel model) or learned (the V2CE network; needs --model).
+    /// Stage 1 tier: physics (the pixel model) or learned (the V2CE network; needs --model)
+    /// [config default: physics].
     #[arg(long, value_enum)]
     stage1: Option<v2ce::stage1::Tier>,
-    /// ONNX model of the learned tier (implies --stage1 learned).
+    /// ONNX model of the learned tier (implies --stage1 learned) [config default: none].
     #[arg(long, value_name = "M.onnx")]
     model: Option<PathBuf>,
-    /// Frame intervals per window of the learned tier (the network was trained on 16).
+    /// Frame intervals per window of the learned tier (the network was trained on 16) [config
+    /// default: 16].
     #[arg(long)]
     window: Option<usize>,
-    /// New intervals per window (1..=window, default the window; less overlaps windows for a
-    /// shorter wait).
+    /// New intervals per window (1..=window; less overlaps windows for a shorter wait) [config
+    /// default: 0, the window].
     #[arg(long)]
     stride: Option<usize>,
-    /// How frames are fitted to the network: native, resize, center, pano.
+    /// How frames are fitted to the network: native, resize, center, pano [config default:
+    /// native].
     #[arg(long, value_enum)]
     geometry: Option<v2ce::stage1::Geometry>,
-    /// ONNX Runtime threads (0: one per core).
+    /// ONNX Runtime threads (0: one per core) [config default: 0].
     #[arg(long)]
     threads: Option<usize>,
-    /// Execution provider: cpu, cuda, auto.
+    /// Execution provider: cpu, cuda, auto [config default: auto].
     #[arg(long, value_enum)]
     device: Option<v2ce::stage1::learned::Device>,
 }
@@ -423,7 +426,7 @@ struct ConvertArgs {
     /// Frames: a video file (through ffmpeg), a folder of PNG/JPEG images, a .y4m, or an
     /// .aedat4 with APS frames.
     input: PathBuf,
-    /// Output events; the extension picks the format: .aedat4, .raw, .csv.
+    /// Output events; the extension picks the format: .aedat4, .raw, .csv, .npz.
     #[arg(short, long)]
     output: PathBuf,
     /// TOML configuration file (flags override it).
@@ -435,19 +438,22 @@ struct ConvertArgs {
     /// (channel = polarity*C + node, ON first); needs a tier that makes voxels.
     #[arg(long, value_name = "V.npy")]
     write_voxels: Option<PathBuf>,
-    /// Sensor preset: davis346, dvxplorer, ideal.
+    /// Sensor preset: davis346, dvxplorer, ideal [config default: davis346].
     #[arg(long)]
     preset: Option<String>,
-    /// Stage 1 output: events (direct) or voxels (re-timed by the Stage 2 sampler).
+    /// Stage 1 output: events (direct) or voxels (re-timed by the Stage 2 sampler) [config
+    /// default: events].
     #[arg(long, value_parser = ["events", "voxels"])]
     mode: Option<String>,
-    /// Stage 2 sampler for --mode voxels: moment, ldati, ldati-random, even, random.
+    /// Stage 2 sampler for --mode voxels: moment, ldati, ldati-random, even, random [config
+    /// default: moment].
     #[arg(long)]
     sampler: Option<SamplerKind>,
-    /// Seed of mismatch, noise and sampling.
+    /// Seed of mismatch, noise and sampling [config default: 0].
     #[arg(long)]
     seed: Option<u64>,
-    /// Frame rate of an image folder without images.txt/times.txt.
+    /// Frame rate of an image folder without images.txt/times.txt (none: the folder must have
+    /// one).
     #[arg(long)]
     fps: Option<f64>,
     /// Image values are linear in the light (raw sensor exports), not sRGB.
@@ -455,10 +461,10 @@ struct ConvertArgs {
     linear: bool,
     #[command(flatten)]
     encoding: EncodingArgs,
-    /// Resample frames to WIDTHxHEIGHT.
+    /// Resample frames to WIDTHxHEIGHT (none: the source's size).
     #[arg(long, value_name = "WxH")]
     size: Option<String>,
-    /// Stop after this many frames.
+    /// Stop after this many frames (none: all).
     #[arg(long)]
     max_frames: Option<u64>,
     /// Overwrite an existing output file.
