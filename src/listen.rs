@@ -200,7 +200,7 @@ pub fn listen(
             let err = |e: std::io::Error| Error::io(PathBuf::from(bind), e);
             let socket = UdpSocket::bind(bind).map_err(err)?;
             if options.recv_buffer > 0 {
-                set_recv_buffer(&socket, options.recv_buffer);
+                crate::sink::udp::set_socket_buffer(&socket, libc::SO_RCVBUF, options.recv_buffer);
             }
             socket
                 .set_read_timeout(Some(Duration::from_millis(50)))
@@ -317,21 +317,5 @@ impl Read for Patient<'_> {
                 other => return other,
             }
         }
-    }
-}
-
-/// Asks for a larger kernel receive buffer (the kernel may cap it; nothing fails if it does).
-fn set_recv_buffer(socket: &UdpSocket, bytes: usize) {
-    use std::os::fd::AsRawFd;
-    let size = bytes.min(i32::MAX as usize) as libc::c_int;
-    // SAFETY: a plain integer option on a socket we own, with its exact size.
-    unsafe {
-        libc::setsockopt(
-            socket.as_raw_fd(),
-            libc::SOL_SOCKET,
-            libc::SO_RCVBUF,
-            (&size as *const libc::c_int).cast(),
-            std::mem::size_of::<libc::c_int>() as libc::socklen_t,
-        );
     }
 }

@@ -175,6 +175,46 @@ fn precise_sleeps() {
     }
 }
 
+/// Asks the kernel for a socket buffer (`SO_SNDBUF` or `SO_RCVBUF`) of at least `bytes`;
+/// the kernel may cap it (`net.core.wmem_max` / `rmem_max`) and nothing fails if it does.
+/// Returns the size the kernel then reports.
+pub(crate) fn set_socket_buffer(socket: &UdpSocket, option: libc::c_int, bytes: usize) -> usize {
+    use std::os::fd::AsRawFd;
+    let fd = socket.as_raw_fd();
+    let len = std::mem::size_of::<libc::c_int>() as libc::socklen_t;
+    let mut now: libc::c_int = 0;
+    let mut now_len = len;
+    // SAFETY: integer socket options on a socket we own, with their exact sizes.
+    unsafe {
+        libc::getsockopt(
+            fd,
+            libc::SOL_SOCKET,
+            option,
+            (&mut now as *mut libc::c_int).cast(),
+            &mut now_len,
+        );
+        // The kernel reports twice what was asked (its bookkeeping); ask only to grow.
+        if (now as usize) < bytes {
+            let size = (bytes / 2).clamp(1, i32::MAX as usize) as libc::c_int;
+            libc::setsockopt(
+                fd,
+                libc::SOL_SOCKET,
+                option,
+                (&size as *const libc::c_int).cast(),
+                len,
+            );
+            libc::getsockopt(
+                fd,
+                libc::SOL_SOCKET,
+                option,
+                (&mut now as *mut libc::c_int).cast(),
+                &mut now_len,
+            );
+        }
+    }
+    now.max(0) as usize
+}
+
 /// Settings of a [`UdpSink`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct UdpConfig {
@@ -269,6 +309,18 @@ impl UdpSink {
         socket
             .set_nonblocking(true)
             .map_err(|e| bad(e.to_string()))?;
+        if let Some(rate) = config.max_datagrams_per_s {
+            // Room for a tenth of a second at the configured rate (each datagram costs its
+            // payload and about 700 bytes of kernel bookkeeping), so a paced stream never
+            // finds the buffer full while the link drains it.
+            let want = (rate * 0.1 * (config.max_payload + 700) as f64).min(64e6) as usize;
+            let got = set_socket_buffer(&socket, libc::SO_SNDBUF, want);
+            if got < want {
+                tracing::warn!(
+                    "UDP send buffer: {got} bytes, not the {want} that {rate} datagrams/s want (raise net.core.wmem_max)"
+                );
+            }
+        }
         Ok(UdpSink {
             per_datagram,
             buf: Vec::with_capacity(config.max_payload),
@@ -581,5 +633,33 @@ mod tests {
         assert!(UdpFormat::from_name("json").is_err());
         let mut s = UdpSink::new(UdpConfig::new("127.0.0.1:9", UdpFormat::T32X16Y15On1)).unwrap();
         assert!(s.send(&[Event::new(0, 0, 40_000, true)]).is_err());
+    }
+
+    #[test]
+    fn the_send_buffer_is_sized_for_the_rate() {
+        let send_buffer = |rate: Option<f64>| {
+            let mut c = UdpConfig::new("127.0.0.1:9", UdpFormat::Spif);
+            c.max_payload = 512;
+            c.max_datagrams_per_s = rate;
+            let sink = UdpSink::new(c).unwrap();
+            set_socket_buffer(&sink.socket, libc::SO_SNDBUF, 0)
+        };
+        let default = send_buffer(None);
+        let cap = std::fs::read_to_string("/proc/sys/net/core/wmem_max")
+            .ok()
+            .and_then(|t| t.trim().parse::<usize>().ok())
+            .map_or(usize::MAX, |m| 2 * m);
+        // 20,000 datagrams/s of 512 bytes: a tenth of a second is 2,000 datagrams.
+        let want: usize = 2_000 * (512 + 700);
+        let paced = send_buffer(Some(20_000.0));
+        assert!(
+            paced >= want.min(cap).max(default),
+            "{paced} < {want} (cap {cap})"
+        );
+        assert_eq!(
+            send_buffer(Some(10.0)),
+            default,
+            "a slow rate keeps the default"
+        );
     }
 }
