@@ -69,6 +69,10 @@ pub struct RunConfig {
     pub emit_delay_ms: f64,
     /// Longest spread of due times in one datagram at event time, milliseconds.
     pub emit_slice_ms: f64,
+    /// Realtime (`SCHED_FIFO`) priority of the thread that sends at event time, 1..=99, when
+    /// the process may (CAP_SYS_NICE or `LimitRTPRIO`); 0, or when refused: normal scheduling,
+    /// spinning the last 100 us before each due time.
+    pub emit_priority: u8,
     /// Serve an event stream to TCP clients on this `HOST:PORT` (`""`: no TCP).
     pub tcp: String,
     /// What TCP clients receive: "aedat4" (DV's network stream), "evt2" or "evt3" (Prophesee
@@ -109,6 +113,7 @@ impl Default for RunConfig {
             emit: EmitMode::EventTime,
             emit_delay_ms: 100.0,
             emit_slice_ms: 0.5,
+            emit_priority: 10,
             tcp: String::new(),
             tcp_format: TcpFormat::Aedat4,
             wait_for_client: false,
@@ -137,6 +142,7 @@ impl RunConfig {
                 emit: self.emit,
                 emit_delay_ms: self.emit_delay_ms,
                 emit_slice_ms: self.emit_slice_ms,
+                emit_priority: self.emit_priority,
             }));
         }
         if !self.tcp.is_empty() {

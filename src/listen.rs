@@ -205,6 +205,7 @@ pub fn listen(
             socket
                 .set_read_timeout(Some(Duration::from_millis(50)))
                 .map_err(err)?;
+            kernel_timestamps(&socket);
             let local = socket.local_addr().map_err(err)?;
             ready(&local.to_string());
             let mut tally = Tally::new(out(options.size)?);
@@ -212,8 +213,8 @@ pub fn listen(
             let mut buf = vec![0u8; 65_536];
             let mut events = Vec::new();
             while !done(&tally) {
-                let n = match socket.recv(&mut buf) {
-                    Ok(n) => n,
+                let (n, at) = match recv_stamped(&socket, &mut buf) {
+                    Ok(got) => got,
                     Err(e)
                         if matches!(
                             e.kind(),
@@ -224,7 +225,6 @@ pub fn listen(
                     }
                     Err(e) => return Err(err(e)),
                 };
-                let at = Instant::now();
                 tally.arrive(at, n);
                 if n % format.event_bytes() != 0 {
                     tally.report.ragged += 1;
@@ -317,5 +317,93 @@ impl Read for Patient<'_> {
                 other => return other,
             }
         }
+    }
+}
+
+/// Asks the kernel to stamp each datagram with the time it arrived (`SO_TIMESTAMPNS`), so
+/// arrival times do not include how long this thread took to be scheduled.
+fn kernel_timestamps(socket: &UdpSocket) {
+    use std::os::fd::AsRawFd;
+    let on: libc::c_int = 1;
+    // SAFETY: an integer option on a socket we own, with its exact size.
+    unsafe {
+        libc::setsockopt(
+            socket.as_raw_fd(),
+            libc::SOL_SOCKET,
+            libc::SO_TIMESTAMPNS,
+            (&on as *const libc::c_int).cast(),
+            std::mem::size_of::<libc::c_int>() as libc::socklen_t,
+        );
+    }
+}
+
+/// Receives one datagram; returns its length and when it arrived: the kernel's stamp mapped
+/// onto the monotonic clock, or now when the kernel gave none.
+fn recv_stamped(socket: &UdpSocket, buf: &mut [u8]) -> std::io::Result<(usize, Instant)> {
+    use std::os::fd::AsRawFd;
+    let mut iov = libc::iovec {
+        iov_base: buf.as_mut_ptr().cast(),
+        iov_len: buf.len(),
+    };
+    // Room for one control message holding a timespec, aligned for cmsghdr.
+    let mut control = [0u64; 16];
+    // SAFETY: msghdr is plain data; every pointer set below outlives the call.
+    let mut msg: libc::msghdr = unsafe { std::mem::zeroed() };
+    msg.msg_iov = &mut iov;
+    msg.msg_iovlen = 1;
+    msg.msg_control = control.as_mut_ptr().cast();
+    msg.msg_controllen = std::mem::size_of_val(&control) as _;
+    // SAFETY: a socket we own and a msghdr whose buffers are valid for their stated lengths.
+    let n = unsafe { libc::recvmsg(socket.as_raw_fd(), &mut msg, 0) };
+    let now = Instant::now();
+    if n < 0 {
+        return Err(std::io::Error::last_os_error());
+    }
+    let mut at = now;
+    // SAFETY: the CMSG macros walk the control buffer the kernel filled, within its length.
+    unsafe {
+        let mut c = libc::CMSG_FIRSTHDR(&msg);
+        while !c.is_null() {
+            if (*c).cmsg_level == libc::SOL_SOCKET && (*c).cmsg_type == libc::SCM_TIMESTAMPNS {
+                let ts = std::ptr::read_unaligned(libc::CMSG_DATA(c) as *const libc::timespec);
+                let stamp = std::time::UNIX_EPOCH
+                    + Duration::new(
+                        ts.tv_sec.max(0) as u64,
+                        ts.tv_nsec.clamp(0, 999_999_999) as u32,
+                    );
+                // How long ago the datagram arrived, on the wall clock; onto the monotonic one.
+                if let Ok(ago) = std::time::SystemTime::now().duration_since(stamp) {
+                    at = now.checked_sub(ago).unwrap_or(now);
+                }
+            }
+            c = libc::CMSG_NXTHDR(&msg, c);
+        }
+    }
+    Ok((n as usize, at))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn arrival_is_the_kernels_stamp_not_when_the_receiver_woke() {
+        let rx = UdpSocket::bind("127.0.0.1:0").unwrap();
+        kernel_timestamps(&rx);
+        let tx = UdpSocket::bind("127.0.0.1:0").unwrap();
+        let sent = Instant::now();
+        tx.send_to(b"four", rx.local_addr().unwrap()).unwrap();
+        // The receiver comes late to the datagram.
+        std::thread::sleep(Duration::from_millis(80));
+        let mut buf = [0u8; 16];
+        let (n, at) = recv_stamped(&rx, &mut buf).unwrap();
+        let read = Instant::now();
+        assert_eq!(&buf[..n], b"four");
+        assert!(at >= sent - Duration::from_millis(5), "stamped before it was sent");
+        assert!(
+            read - at >= Duration::from_millis(70),
+            "arrival {:?} before the read: the kernel's stamp was not used",
+            read - at
+        );
     }
 }

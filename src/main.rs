@@ -295,6 +295,10 @@ struct RunArgs {
     /// How far behind the frames events leave at event time, ms [config default: 100].
     #[arg(long)]
     emit_delay_ms: Option<f64>,
+    /// Realtime priority of the thread that sends at event time, 1-99 (0: normal scheduling)
+    /// [config default: 10, when the process may].
+    #[arg(long)]
+    emit_priority: Option<u8>,
     /// Sensor preset of the physics tier: davis346, dvxplorer, ideal [config default: davis346].
     #[arg(long)]
     preset: Option<String>,
@@ -593,6 +597,9 @@ fn run_config(args: &RunArgs) -> Result<Config> {
     }
     if let Some(v) = args.emit_delay_ms {
         run.emit_delay_ms = v;
+    }
+    if let Some(v) = args.emit_priority {
+        run.emit_priority = v;
     }
     if let Some(v) = &args.tcp {
         run.tcp = v.clone();

@@ -53,13 +53,20 @@ impl EmitClock {
         self.anchor.get_or_insert((frame_t, captured));
     }
 
-    /// When the event at `t` is due (`None` before the clock is anchored). An event before the
-    /// anchor is due at the anchor.
+    /// When the event at `t` is due (`None` before the clock is anchored). Events of the
+    /// interval the anchoring frame closed come before it and are due before `c0 + delay`,
+    /// spread as the others; nothing is due before the anchor instant itself.
     pub fn due(&self, t: i64) -> Option<Instant> {
         let (t0, c0) = self.anchor?;
-        let after = (t.saturating_sub(t0)).max(0) as f64 / 1e6 / self.speed;
+        let at = c0 + self.delay;
         // Beyond ~30 years a time is nonsense; keep the arithmetic finite.
-        Some(c0 + self.delay + Duration::from_secs_f64(after.min(1e9)))
+        let span = |us: i64| Duration::from_secs_f64((us as f64 / 1e6 / self.speed).min(1e9));
+        Some(if t >= t0 {
+            at + span(t.saturating_sub(t0))
+        } else {
+            at.checked_sub(span(t0.saturating_sub(t)))
+                .map_or(c0, |d| d.max(c0))
+        })
     }
 
     /// The due time of the event at `t`, after anchoring the clock again on it when it is more
@@ -89,8 +96,10 @@ mod tests {
         clock.anchor(9_000_000, c0 + Duration::from_secs(3)); // ignored: anchored once
         assert_eq!(clock.due(1_000_000), Some(c0 + Duration::from_millis(100)));
         assert_eq!(clock.due(1_033_000), Some(c0 + Duration::from_millis(133)));
-        // Before the anchor: due at the anchor, never earlier.
-        assert_eq!(clock.due(0), Some(c0 + Duration::from_millis(100)));
+        // Before the anchor (the interval its frame closed): spread the same way, but never
+        // before the anchor instant.
+        assert_eq!(clock.due(990_000), Some(c0 + Duration::from_millis(90)));
+        assert_eq!(clock.due(0), Some(c0));
         // A replay at 10x: 1 s of events in 100 ms.
         let mut fast = EmitClock::new(Duration::ZERO, 10.0);
         fast.anchor(0, c0);

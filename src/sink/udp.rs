@@ -63,6 +63,9 @@ pub struct UdpSinkConfig {
     pub emit_delay_ms: f64,
     /// Longest spread of due times in one datagram at event time, milliseconds.
     pub emit_slice_ms: f64,
+    /// Realtime (`SCHED_FIFO`) priority of the sending thread at event time, 1..=99 (0: normal
+    /// scheduling, spinning before each due time).
+    pub emit_priority: u8,
 }
 
 impl Default for UdpSinkConfig {
@@ -75,6 +78,7 @@ impl Default for UdpSinkConfig {
             emit: EmitMode::EventTime,
             emit_delay_ms: 100.0,
             emit_slice_ms: 0.5,
+            emit_priority: 10,
         }
     }
 }
@@ -100,6 +104,12 @@ impl UdpSinkConfig {
                 self.emit_delay_ms
             ));
         }
+        if self.emit_priority > 99 {
+            return bad(format!(
+                "emit_priority {} (must be 0 to 99)",
+                self.emit_priority
+            ));
+        }
         if !(self.emit_slice_ms.is_finite()
             && self.emit_slice_ms > 0.0
             && self.emit_slice_ms <= 1000.0)
@@ -117,6 +127,7 @@ impl UdpSinkConfig {
         let mut c = UdpConfig::new(&self.address, self.format);
         c.max_datagrams_per_s = (self.rate > 0).then_some(f64::from(self.rate));
         c.max_payload = self.payload;
+        c.realtime_priority = self.emit_priority;
         c.emission = match self.emit {
             EmitMode::Asap => Emission::Asap,
             EmitMode::EventTime => Emission::EventTime {
@@ -152,27 +163,50 @@ pub enum Emission {
     },
 }
 
-/// Waits until `due`: sleeps while it is far, then spins the last stretch, so a datagram never
-/// leaves early and rarely late. (A sleep overshoots by the thread's timer slack, 50 us by
-/// default, which [`precise_sleeps`] lowers; yielding instead of spinning can lose the core for
-/// a whole scheduler slice, milliseconds, when other threads are ready.)
-fn wait_until(due: Instant) {
-    const SPIN: Duration = Duration::from_micros(100);
+/// Waits until `due`: sleeps, then spins the last `spin` of it, so a datagram never leaves
+/// early and rarely late. A realtime thread (see [`emission_thread`]) wakes when its timer
+/// fires and needs no spin; a normal one can wait milliseconds for a busy core after its
+/// sleep, so it sleeps only to `spin` before and spins the rest (at the cost of that CPU).
+fn wait_until(due: Instant, spin: Duration) {
     let now = Instant::now();
-    if due > now + SPIN {
-        std::thread::sleep(due - now - SPIN);
+    if due > now + spin {
+        std::thread::sleep(due - now - spin);
     }
     while Instant::now() < due {
         std::hint::spin_loop();
     }
 }
 
-/// Lowers the calling thread's timer slack to 1 us (Linux), so its sleeps end when asked.
-fn precise_sleeps() {
+/// How long a sender at normal priority spins before each due time.
+const SPIN: Duration = Duration::from_micros(100);
+
+/// Sets up the calling thread to send at event time: its timer slack down to 1 us (Linux), so
+/// its sleeps end when asked, and, when `priority` is 1..=99, the `SCHED_FIFO` realtime policy
+/// at that priority, so a timer that fires takes a core at once instead of waiting for the
+/// other threads' slices. That needs `CAP_SYS_NICE` or an `RLIMIT_RTPRIO` of at least
+/// `priority` (the systemd unit's `LimitRTPRIO`). Returns whether the realtime policy took.
+fn emission_thread(priority: u8) -> bool {
     // SAFETY: PR_SET_TIMERSLACK takes one integer and only changes this thread's slack.
     unsafe {
         libc::prctl(libc::PR_SET_TIMERSLACK, 1 as libc::c_ulong, 0, 0, 0);
     }
+    if priority == 0 {
+        return false;
+    }
+    let param = libc::sched_param {
+        sched_priority: i32::from(priority.min(99)),
+    };
+    // SAFETY: pid 0 is the calling thread; the parameter is a plain struct we own.
+    let done = unsafe { libc::sched_setscheduler(0, libc::SCHED_FIFO, &param) } == 0;
+    if done {
+        tracing::info!("UDP emission thread: realtime (SCHED_FIFO) priority {priority}");
+    } else {
+        tracing::info!(
+            "UDP emission thread at normal priority (realtime priority {priority} refused: {}; grant CAP_SYS_NICE or LimitRTPRIO={priority}); it spins before each due time instead",
+            std::io::Error::last_os_error()
+        );
+    }
+    done
 }
 
 /// Asks the kernel for a socket buffer (`SO_SNDBUF` or `SO_RCVBUF`) of at least `bytes`;
@@ -228,6 +262,9 @@ pub struct UdpConfig {
     pub max_datagrams_per_s: Option<f64>,
     /// When events leave.
     pub emission: Emission,
+    /// Realtime (`SCHED_FIFO`) priority of the sending thread at event time, 1..=99 (0: normal
+    /// scheduling); see [`Emission::EventTime`].
+    pub realtime_priority: u8,
 }
 
 impl UdpConfig {
@@ -242,6 +279,7 @@ impl UdpConfig {
             max_payload: Self::DEFAULT_PAYLOAD,
             max_datagrams_per_s: None,
             emission: Emission::Asap,
+            realtime_priority: 0,
         }
     }
 }
@@ -257,8 +295,9 @@ pub struct UdpSink {
     next_slot: Instant,
     interval: Option<Duration>,
     clock: Option<(EmitClock, Duration)>,
-    /// The sending thread's sleeps were made precise.
-    precise: bool,
+    /// The sending thread was set up for emission at event time: how long it spins before a
+    /// due time.
+    spin: Option<Duration>,
     stats: SinkStats,
 }
 
@@ -327,7 +366,7 @@ impl UdpSink {
             next_slot: Instant::now(),
             interval,
             clock,
-            precise: false,
+            spin: None,
             config,
             socket,
             target,
@@ -409,11 +448,16 @@ impl Sink for UdpSink {
             }
             return Ok(());
         }
-        if !self.precise {
-            // The sending thread is the one that waits: set it up once, from it.
-            precise_sleeps();
-            self.precise = true;
-        }
+        let spin = match self.spin {
+            Some(spin) => spin,
+            None => {
+                // The sending thread is the one that waits: set it up once, from it.
+                let realtime = emission_thread(self.config.realtime_priority);
+                *self
+                    .spin
+                    .insert(if realtime { Duration::ZERO } else { SPIN })
+            }
+        };
         if let (Some((clock, _)), Some(first)) = (self.clock.as_mut(), events.first()) {
             // Without the closing frame: anchored on the first event, now.
             clock.anchor(first.t, Instant::now());
@@ -438,7 +482,7 @@ impl Sink for UdpSink {
                 j += 1;
             }
             let reanchors = clock.reanchors;
-            wait_until(last_due);
+            wait_until(last_due, spin);
             let sent_at = Instant::now();
             self.stats.reanchors = reanchors;
             // Late: sent more than a slice (and a millisecond of scheduling) after its time.
