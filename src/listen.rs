@@ -399,7 +399,10 @@ mod tests {
         let (n, at) = recv_stamped(&rx, &mut buf).unwrap();
         let read = Instant::now();
         assert_eq!(&buf[..n], b"four");
-        assert!(at >= sent - Duration::from_millis(5), "stamped before it was sent");
+        assert!(
+            at >= sent - Duration::from_millis(5),
+            "stamped before it was sent"
+        );
         assert!(
             read - at >= Duration::from_millis(70),
             "arrival {:?} before the read: the kernel's stamp was not used",

@@ -30,7 +30,8 @@ enum Command {
     Eval(Eval),
     /// Convert frames (a video, an image folder, a .y4m, or an .aedat4's APS frames) to events.
     Convert(ConvertArgs),
-    /// Convert an event file to another format, streaming (.aedat4, .raw, .csv; IJRR .txt in).
+    /// Convert an event file to another format, streaming (.aedat4, .raw, .csv, .npz, .h5; IJRR
+    /// .txt in).
     Transcode(TranscodeArgs),
     /// Print an event file's sensor size, event count, time span, rate and ON ratio.
     Info(InfoArgs),
@@ -54,7 +55,7 @@ enum Command {
 
 #[derive(Args)]
 struct RenderArgs {
-    /// Events: .aedat4, .raw, .csv, IJRR .txt.
+    /// Events: .aedat4, .raw, .csv, .npz, .h5/.hdf5, IJRR .txt.
     input: PathBuf,
     /// The picture: .png (every event in one frame), .gif or .mp4 (frames at --fps).
     #[arg(short, long)]
@@ -87,7 +88,7 @@ struct ListenArgs {
     /// Connect to a daemon's TCP stream at HOST:PORT (AEDAT 4.0 or RAW EVT 2.0/3.0).
     #[arg(long)]
     tcp: Option<String>,
-    /// Write the events to this file (.aedat4, .raw, .csv); plain spif events get their
+    /// Write the events to this file (.aedat4, .raw, .csv, .npz, .h5); plain spif events get their
     /// arrival time.
     #[arg(short, long)]
     out: Option<PathBuf>,
@@ -312,7 +313,8 @@ struct RunArgs {
     /// Hold the source until the first TCP client has connected.
     #[arg(long)]
     wait_for_client: bool,
-    /// Also write the events to this file (.aedat4, .raw, .csv, .npz) [config default: "", none].
+    /// Also write the events to this file (.aedat4, .raw, .csv, .npz, .h5) [config default: "",
+    /// none].
     #[arg(long)]
     out: Option<String>,
     /// Seed of mismatch, noise and sampling [config default: 0].
@@ -371,9 +373,10 @@ struct BenchArgs {
 
 #[derive(Args)]
 struct TranscodeArgs {
-    /// Input: .aedat4, .raw (EVT 2.0 or 3.0, from its header), .csv, or IJRR events.txt.
+    /// Input: .aedat4, .raw (EVT 2.0 or 3.0, from its header), .csv, .npz, .h5/.hdf5 (DSEC
+    /// layout), or IJRR events.txt.
     input: PathBuf,
-    /// Output; its extension picks the format: .aedat4, .raw, .csv.
+    /// Output; its extension picks the format: .aedat4, .raw, .csv, .npz, .h5/.hdf5.
     output: PathBuf,
     #[command(flatten)]
     encoding: EncodingArgs,
@@ -406,7 +409,7 @@ impl EncodingArgs {
 
 #[derive(Args)]
 struct InfoArgs {
-    /// An event file: .aedat4, .raw, .csv or IJRR events.txt.
+    /// An event file: .aedat4, .raw, .csv, .npz, .h5/.hdf5 or IJRR events.txt.
     file: PathBuf,
     /// Print one JSON object.
     #[arg(long)]
@@ -430,7 +433,7 @@ struct ConvertArgs {
     /// Frames: a video file (through ffmpeg), a folder of PNG/JPEG images, a .y4m, or an
     /// .aedat4 with APS frames.
     input: PathBuf,
-    /// Output events; the extension picks the format: .aedat4, .raw, .csv, .npz.
+    /// Output events; the extension picks the format: .aedat4, .raw, .csv, .npz, .h5/.hdf5.
     #[arg(short, long)]
     output: PathBuf,
     /// TOML configuration file (flags override it).

@@ -82,12 +82,13 @@ pub struct Summary {
     pub first_t: Option<i64>,
     /// Last event time (us).
     pub last_t: Option<i64>,
-    /// The file's format: `AEDAT 4.0`, `EVT 2.0`, `EVT 3.0`, `CSV`, `IJRR text`.
+    /// The file's format: `AEDAT 4.0`, `EVT 2.0`, `EVT 3.0`, `CSV`, `V2CE toolbox .npz`,
+    /// `HDF5 (DSEC layout)`, `IJRR text`.
     pub format: String,
-    /// Packet compression (AEDAT 4.0).
+    /// Packet compression (AEDAT 4.0), or the HDF5 filters of `events/t` (`shuffle+deflate`).
     pub compression: Option<String>,
     /// The time a RAW file adds to every decoded time, us (its readers differ on this, so the
-    /// times can be compared with theirs).
+    /// times can be compared with theirs), or an HDF5 file's `t_offset`.
     pub time_offset_us: Option<i64>,
     /// The first and last events in file order, as `[t, x, y, on]`.
     pub first_event: Option<[i64; 4]>,
@@ -126,6 +127,14 @@ fn describe_file(path: &Path) -> Result<(String, Option<String>, Option<i64>)> {
         }
         "csv" => ("CSV".into(), None, None),
         "npz" => ("V2CE toolbox .npz".into(), None, None),
+        "h5" | "hdf5" => {
+            let d = format::hdf5::Decoder::open(path).map_err(wrap)?;
+            (
+                "HDF5 (DSEC layout)".into(),
+                Some(d.compression().into()),
+                Some(d.t_offset()),
+            )
+        }
         _ => ("IJRR text".into(), None, None),
     })
 }
@@ -264,6 +273,7 @@ mod tests {
         let b = dir.join("b.raw");
         let c = dir.join("c.raw");
         let d = dir.join("d.csv");
+        let h = dir.join("h.h5");
         let r = transcode(&src, &a, Format::Aedat4(format::Compression::Zstd), None).unwrap();
         assert_eq!(
             r,
@@ -274,7 +284,13 @@ mod tests {
         );
         transcode(&a, &b, Format::Evt3, None).unwrap();
         transcode(&b, &c, Format::Evt2, Some((640, 480))).unwrap();
-        transcode(&c, &d, Format::Csv, None).unwrap();
+        transcode(&c, &h, Format::Hdf5, None).unwrap();
+        let s = summarize(&h).unwrap();
+        assert_eq!((s.size, s.events), (Some((640, 480)), 200_000));
+        assert_eq!(s.format, "HDF5 (DSEC layout)");
+        assert_eq!(s.compression.as_deref(), Some("shuffle+deflate"));
+        assert_eq!(s.time_offset_us, Some(1_000));
+        transcode(&h, &d, Format::Csv, None).unwrap();
         assert_eq!(
             format::read_events(&d).unwrap().events.events(),
             &events[..]

@@ -114,6 +114,7 @@ fn every_recording_round_trips_through_every_format() {
             ("e3.raw", Format::Evt3),
             ("e.csv", Format::Csv),
             ("e.npz", Format::Npz),
+            ("e.h5", Format::Hdf5),
         ] {
             let path = out.join(file);
             let mut enc = format::create(&path, format, rec.width, rec.height).unwrap();

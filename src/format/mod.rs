@@ -5,6 +5,8 @@
 //! | `.aedat4` | [`aedat4`] | read and written | the APS frames' mid-exposure times |
 //! | `.raw` | [`evt2`], [`evt3`] (header in [`raw`]) | read and written | - |
 //! | `.csv` | [`csv`] | `t_us,x,y,on`, read and written | - |
+//! | `.npz` | [`npz`] | the V2CE toolbox's `event_stream` record array, read and written | - |
+//! | `.h5`, `.hdf5` | [`hdf5`] | DSEC layout (`events/x,y,t,p`, `ms_to_idx`, `t_offset`), read and written (gzip) | - |
 //! | `.txt` | [`ijrr`] | `events.txt` (`t_seconds x y polarity`), read | `images.txt` (`t_seconds path`) |
 //!
 //! The UDP datagram word layouts (`spif` and faery's) are in [`datagram`].
@@ -17,6 +19,7 @@ pub mod csv;
 pub mod datagram;
 pub mod evt2;
 pub mod evt3;
+pub mod hdf5;
 pub mod ijrr;
 pub mod npz;
 pub mod raw;
@@ -112,11 +115,13 @@ pub enum Format {
     Csv,
     /// The V2CE toolbox's `.npz` (`event_stream` record array).
     Npz,
+    /// HDF5 in the DSEC layout (`.h5`, `.hdf5`).
+    Hdf5,
 }
 
 impl Format {
     /// The output format for `path`: `.aedat4` (with `compression`), `.raw` (with `evt` 2 or 3,
-    /// 3 when absent), or `.csv`.
+    /// 2 when absent), `.csv`, `.npz`, or `.h5`/`.hdf5`.
     pub fn for_output(path: &Path, evt: Option<u8>, compression: Compression) -> Result<Self> {
         match (extension(path).as_str(), evt) {
             ("aedat4", _) => Ok(Format::Aedat4(compression)),
@@ -130,17 +135,18 @@ impl Format {
             )),
             ("csv", _) => Ok(Format::Csv),
             ("npz", _) => Ok(Format::Npz),
+            ("h5" | "hdf5", _) => Ok(Format::Hdf5),
             (other, _) => Err(Error::invalid(
                 "output file",
                 format!(
-                    "{}: unknown extension '.{other}' (expected .aedat4, .raw, .csv or .npz)",
+                    "{}: unknown extension '.{other}' (expected .aedat4, .raw, .csv, .npz, .h5 or .hdf5)",
                     path.display()
                 ),
             )),
         }
     }
 
-    /// A short name: `aedat4`, `evt2`, `evt3`, `csv`.
+    /// A short name: `aedat4`, `evt2`, `evt3`, `csv`, `npz`, `hdf5`.
     pub fn name(self) -> &'static str {
         match self {
             Format::Aedat4(_) => "aedat4",
@@ -148,6 +154,7 @@ impl Format {
             Format::Evt3 => "evt3",
             Format::Csv => "csv",
             Format::Npz => "npz",
+            Format::Hdf5 => "hdf5",
         }
     }
 }
@@ -189,7 +196,7 @@ impl EventDecoder for MemoryDecoder {
 }
 
 /// Opens an event file for streaming: `.aedat4`, `.raw` (EVT 2.0 or 3.0, from its header),
-/// `.csv`, or an IJRR `events.txt` (read whole).
+/// `.csv`, `.npz`, `.h5`/`.hdf5` (DSEC layout), or an IJRR `events.txt` (read whole).
 pub fn open(path: &Path) -> Result<Box<dyn EventDecoder + Send>> {
     let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
     let mut reader = BufReader::with_capacity(1 << 16, file);
@@ -208,6 +215,10 @@ pub fn open(path: &Path) -> Result<Box<dyn EventDecoder + Send>> {
             drop(reader);
             Box::new(npz::Decoder::open(path)?)
         }
+        "h5" | "hdf5" => {
+            drop(reader);
+            Box::new(hdf5::Decoder::open(path).map_err(wrap)?)
+        }
         "txt" => {
             let rec = ijrr::read_events(path)?;
             Box::new(MemoryDecoder {
@@ -219,7 +230,7 @@ pub fn open(path: &Path) -> Result<Box<dyn EventDecoder + Send>> {
             return Err(Error::format(
                 path,
                 format!(
-                "unknown event file type '.{other}' (expected .aedat4, .raw, .csv, .npz or .txt)"
+                "unknown event file type '.{other}' (expected .aedat4, .raw, .csv, .npz, .h5, .hdf5 or .txt)"
             ),
             ))
         }
@@ -257,15 +268,21 @@ pub fn create(
     width: u16,
     height: u16,
 ) -> Result<Box<dyn EventEncoder + Send>> {
-    let file = std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
-    let w = BufWriter::with_capacity(1 << 16, file);
+    let buffered = || -> Result<BufWriter<std::fs::File>> {
+        let file = std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
+        Ok(BufWriter::with_capacity(1 << 16, file))
+    };
     let wrap = |e: Error| Error::format(path, e.to_string());
     let inner: Box<dyn EventEncoder + Send> = match format {
-        Format::Aedat4(c) => Box::new(aedat4::Writer::new(w, width, height, c).map_err(wrap)?),
-        Format::Evt2 => Box::new(evt2::Encoder::new(w, width, height).map_err(wrap)?),
-        Format::Evt3 => Box::new(evt3::Encoder::new(w, width, height).map_err(wrap)?),
-        Format::Csv => Box::new(csv::Encoder::new(w).map_err(wrap)?),
-        Format::Npz => Box::new(npz::Encoder::new(w, path).map_err(wrap)?),
+        Format::Aedat4(c) => {
+            Box::new(aedat4::Writer::new(buffered()?, width, height, c).map_err(wrap)?)
+        }
+        Format::Evt2 => Box::new(evt2::Encoder::new(buffered()?, width, height).map_err(wrap)?),
+        Format::Evt3 => Box::new(evt3::Encoder::new(buffered()?, width, height).map_err(wrap)?),
+        Format::Csv => Box::new(csv::Encoder::new(buffered()?).map_err(wrap)?),
+        Format::Npz => Box::new(npz::Encoder::new(buffered()?, path).map_err(wrap)?),
+        // The HDF5 library creates the file itself.
+        Format::Hdf5 => Box::new(hdf5::Encoder::create(path, width, height).map_err(wrap)?),
     };
     Ok(Box::new(FileEncoder {
         path: path.to_path_buf(),

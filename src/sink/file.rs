@@ -12,7 +12,7 @@ use crate::format::{self, EventEncoder, Format};
 #[serde(deny_unknown_fields)]
 pub struct FileSinkConfig {
     /// The file; its extension picks the format (`.aedat4` with LZ4 packets, `.raw`, `.csv`,
-    /// `.npz`).
+    /// `.npz`, `.h5`).
     pub path: String,
     /// The EVT version of a `.raw` file: 2 (the default) or 3.
     #[serde(default)]

@@ -5,7 +5,8 @@ environment; each mode compares what a third-party reader gets with an expected 
 (`t_us,x,y,on`) and exits 0 on an exact match, 1 on a mismatch, 2 on a timeout.
 
     crosscheck.py file READER PATH EXPECTED.csv [T_OFFSET]   READER: faery | aedat | dv |
-                                                               aestream | expelliarmus
+                                                               aestream | expelliarmus |
+                                                               numpy | h5py
     crosscheck.py udp FORMAT PORT EXPECTED.csv WIDTH HEIGHT    FORMAT: t64_x16_y16_on8 |
                                                                t32_x16_y15_on1 | spif
     crosscheck.py tcp PORT EXPECTED.csv
@@ -109,8 +110,33 @@ def read_numpy(path):
     return columns(e["timestamp"], e["x"], e["y"], e["polarity"])
 
 
+def read_h5py(path):
+    """An HDF5 file in the DSEC layout, as h5py reads it: events/{x,y,t,p} plus t_offset, with
+    ms_to_idx checked against the times (entry m is the first event at or after m ms)."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        x, y, t, p = (f["events"][k][()] for k in ("x", "y", "t", "p"))
+        t_offset = int(f["t_offset"][()])
+        ms_to_idx = f["ms_to_idx"][()]
+    if not (len(x) == len(y) == len(t) == len(p)):
+        raise SystemExit(f"events/x,y,t,p lengths differ: {len(x)} {len(y)} {len(t)} {len(p)}")
+    stored = t.dtype
+    t = t.astype(np.int64)
+    if np.any(np.diff(t) < 0):
+        raise SystemExit("events/t is not sorted")
+    last_ms = int(t[-1]) // 1000 if len(t) else -1
+    want = np.searchsorted(t, np.arange(last_ms + 1, dtype=np.int64) * 1000, side="left")
+    if not np.array_equal(ms_to_idx.astype(np.int64), want):
+        raise SystemExit(f"ms_to_idx ({len(ms_to_idx)} entries) is not the events' index "
+                         f"({len(want)} entries)")
+    print(f"ms_to_idx consistent: {len(ms_to_idx)} ms; events/t is {stored}")
+    return columns(t + t_offset, x, y, p)
+
+
 READERS = {
     "numpy": read_numpy,
+    "h5py": read_h5py,
     "faery": read_faery,
     "aedat": read_aedat,
     "dv": read_dv,

@@ -1,0 +1,750 @@
+//! HDF5 event files in the DSEC layout (`events.h5`), read and written.
+//!
+//! | path | type | content |
+//! |---|---|---|
+//! | `events/x`, `events/y` | u16 | pixel column and row |
+//! | `events/t` | u32 (i64 past 71 minutes, see below) | time in us relative to `t_offset` |
+//! | `events/p` | u8 | polarity, 1 = ON, 0 = OFF |
+//! | `ms_to_idx` | u64 | for each millisecond `m` from 0 to the last event's, the index of the first event with `t >= 1000 m` |
+//! | `t_offset` | i64 scalar | the absolute time of relative 0, in us |
+//! | root attributes `width`, `height` | u16 | the sensor size (our addition) |
+//!
+//! `events/x[ms_to_idx[m]:ms_to_idx[m + 1]]` (and likewise `y`, `t`, `p`) are the events of
+//! millisecond `m`; an absolute time is `events/t[i] + t_offset`.
+//!
+//! Writing: `t_offset` is the first event's time, so `events/t` starts at 0. Every dataset is
+//! chunked (65 536 values a chunk), extendable, and compressed with HDF5's built-in shuffle and
+//! deflate (gzip) filters, which h5py and every HDF5 build read without plugins (DSEC's own
+//! files use the blosc plugin instead). `events/t` is u32, as in DSEC, while the recording spans
+//! under 2^32 us (about 71.6 minutes); the first event past that rewrites the column as i64 (the
+//! values move, in chunks, to a new dataset that takes the name `events/t`), so a long
+//! recording is read the same way, and `t + t_offset` stays an exact integer in NumPy (an i64
+//! column, unlike a u64 one, does not turn into floats when added to the i64 offset). Events
+//! and `ms_to_idx` are buffered a chunk at a time, so memory stays flat however long the input.
+//! `ms_to_idx` has an entry per millisecond of the span whatever the event count (a 5.8-hour
+//! sparse stream has 21 million, runs of equal values that deflate compresses to little). Events
+//! must come in time order and inside the sensor size given to [`Encoder::create`].
+//!
+//! Reading: any integer types are accepted for the four columns (checked against the event's
+//! ranges), polarity 1 is ON and 0 or -1 OFF, `t_offset` defaults to 0 when absent, and the
+//! columns are read a slice at a time. `ms_to_idx` is not needed to read the events. The sensor
+//! size comes from the root attributes `width` and `height`, absent from DSEC's files (where
+//! [`EventDecoder::size`] is `None`). A file compressed with a filter this HDF5 library lacks
+//! (DSEC's blosc, unless its plugin is on `HDF5_PLUGIN_PATH`) is refused when opened.
+
+use std::ops::Range;
+use std::path::Path;
+
+use hdf5_metno as h5;
+use hdf5_metno::types::{IntSize, TypeDescriptor};
+
+use super::{check_event, EventDecoder, EventEncoder};
+use crate::error::{Error, Result};
+use crate::event::Event;
+
+/// The events' group.
+pub const EVENTS: &str = "events";
+
+/// The millisecond index's dataset.
+pub const MS_TO_IDX: &str = "ms_to_idx";
+
+/// The time offset's dataset.
+pub const T_OFFSET: &str = "t_offset";
+
+/// Values per chunk, in every dataset; also the encoder's buffer, in events.
+const CHUNK: usize = 1 << 16;
+
+/// The deflate level (1 to 9): the fastest.
+const DEFLATE_LEVEL: u8 = 1;
+
+/// The largest relative time `events/t` holds as u32.
+const T32_MAX: i64 = u32::MAX as i64;
+
+/// The name `events/t`'s i64 copy has while it is filled, before it takes the name `t`.
+const T_WIDE_TEMP: &str = "t_i64";
+
+fn bad(message: impl Into<String>) -> Error {
+    Error::invalid("HDF5", message.into())
+}
+
+fn h5err(what: &str) -> impl Fn(h5::Error) -> Error + '_ {
+    move |e| bad(format!("{what}: {e}"))
+}
+
+/// A new 1-D, extendable, chunked, compressed dataset of `T` named `name` in `group`.
+fn column<T: h5::H5Type>(group: &h5::Group, name: &str) -> Result<h5::Dataset> {
+    group
+        .new_dataset::<T>()
+        .chunk(CHUNK)
+        .shuffle()
+        .deflate(DEFLATE_LEVEL)
+        .shape(0..)
+        .create(name)
+        .map_err(h5err(name))
+}
+
+/// Appends `values` at `at` to a dataset made by [`column`] (converting to its type).
+fn append<T: h5::H5Type>(ds: &h5::Dataset, at: usize, values: &[T], what: &str) -> Result<()> {
+    if values.is_empty() {
+        return Ok(());
+    }
+    let end = at + values.len();
+    ds.resize(end).map_err(h5err(what))?;
+    ds.write_slice(values, at..end).map_err(h5err(what))
+}
+
+/// The datasets the encoder writes.
+struct Columns {
+    x: h5::Dataset,
+    y: h5::Dataset,
+    t: h5::Dataset,
+    p: h5::Dataset,
+    ms_to_idx: h5::Dataset,
+    t_offset: h5::Dataset,
+    events: h5::Group,
+}
+
+/// Writes an HDF5 event file in the DSEC layout (see the module docs).
+pub struct Encoder {
+    // The datasets close before the file (fields drop in this order).
+    columns: Option<Columns>,
+    file: Option<h5::File>,
+    width: u16,
+    height: u16,
+    /// Whether `events/t` is i64 (the recording outgrew u32).
+    t_wide: bool,
+    t_offset: Option<i64>,
+    last_t: i64,
+    /// Events accepted (flushed or buffered).
+    count: u64,
+    /// Events flushed to the datasets.
+    flushed: usize,
+    /// `ms_to_idx` entries made (flushed or buffered): the next millisecond to index.
+    next_ms: u64,
+    /// `ms_to_idx` entries flushed.
+    ms_flushed: usize,
+    bx: Vec<u16>,
+    by: Vec<u16>,
+    bt: Vec<i64>,
+    bp: Vec<u8>,
+    bms: Vec<u64>,
+}
+
+impl Encoder {
+    /// Creates (or truncates) `path` for a `width x height` sensor.
+    pub fn create(path: &Path, width: u16, height: u16) -> Result<Self> {
+        let file = h5::File::create(path).map_err(h5err("cannot create the file"))?;
+        for (name, value) in [("width", width), ("height", height)] {
+            file.new_attr::<u16>()
+                .create(name)
+                .and_then(|a| a.write_scalar(&value))
+                .map_err(h5err(name))?;
+        }
+        let events = file.create_group(EVENTS).map_err(h5err(EVENTS))?;
+        let columns = Columns {
+            x: column::<u16>(&events, "x")?,
+            y: column::<u16>(&events, "y")?,
+            t: column::<u32>(&events, "t")?,
+            p: column::<u8>(&events, "p")?,
+            ms_to_idx: column::<u64>(&file, MS_TO_IDX)?,
+            // 0 until the first event, whose time it then holds.
+            t_offset: file
+                .new_dataset::<i64>()
+                .create(T_OFFSET)
+                .and_then(|d| d.write_scalar(&0i64).map(|_| d))
+                .map_err(h5err(T_OFFSET))?,
+            events,
+        };
+        Ok(Encoder {
+            columns: Some(columns),
+            file: Some(file),
+            width,
+            height,
+            t_wide: false,
+            t_offset: None,
+            last_t: i64::MIN,
+            count: 0,
+            flushed: 0,
+            next_ms: 0,
+            ms_flushed: 0,
+            bx: Vec::with_capacity(CHUNK),
+            by: Vec::with_capacity(CHUNK),
+            bt: Vec::with_capacity(CHUNK),
+            bp: Vec::with_capacity(CHUNK),
+            bms: Vec::with_capacity(CHUNK),
+        })
+    }
+
+    fn columns(&self) -> Result<&Columns> {
+        self.columns.as_ref().ok_or_else(|| bad("already finished"))
+    }
+
+    /// Writes the buffered events.
+    fn flush_events(&mut self) -> Result<()> {
+        let c = self.columns()?;
+        let at = self.flushed;
+        append(&c.x, at, &self.bx, "events/x")?;
+        append(&c.y, at, &self.by, "events/y")?;
+        append(&c.t, at, &self.bt, "events/t")?;
+        append(&c.p, at, &self.bp, "events/p")?;
+        self.flushed += self.bx.len();
+        self.bx.clear();
+        self.by.clear();
+        self.bt.clear();
+        self.bp.clear();
+        Ok(())
+    }
+
+    /// Writes the buffered `ms_to_idx` entries.
+    fn flush_ms(&mut self) -> Result<()> {
+        append(
+            &self.columns()?.ms_to_idx,
+            self.ms_flushed,
+            &self.bms,
+            MS_TO_IDX,
+        )?;
+        self.ms_flushed += self.bms.len();
+        self.bms.clear();
+        Ok(())
+    }
+
+    /// Rewrites the flushed part of `events/t` as i64, in chunks, under the same name.
+    fn widen_t(&mut self) -> Result<()> {
+        let flushed = self.flushed;
+        let c = self
+            .columns
+            .as_mut()
+            .ok_or_else(|| bad("already finished"))?;
+        let wide = column::<i64>(&c.events, T_WIDE_TEMP)?;
+        let mut at = 0;
+        while at < flushed {
+            let end = (at + CHUNK).min(flushed);
+            let part =
+                c.t.read_slice_1d::<i64, _>(at..end)
+                    .map_err(h5err("events/t"))?;
+            let part = part
+                .as_slice()
+                .ok_or_else(|| bad("events/t: a slice read back not contiguous"))?;
+            append(&wide, at, part, "events/t")?;
+            at = end;
+        }
+        c.events.unlink("t").map_err(h5err("events/t"))?;
+        c.events
+            .relink(T_WIDE_TEMP, "t")
+            .map_err(h5err("events/t"))?;
+        c.t = wide;
+        self.t_wide = true;
+        Ok(())
+    }
+}
+
+impl EventEncoder for Encoder {
+    fn write(&mut self, events: &[Event]) -> Result<()> {
+        self.columns()?;
+        for e in events {
+            check_event(e, self.last_t, self.width, self.height)?;
+            self.last_t = e.t;
+            let offset = match self.t_offset {
+                Some(o) => o,
+                None => {
+                    self.columns()?
+                        .t_offset
+                        .write_scalar(&e.t)
+                        .map_err(h5err(T_OFFSET))?;
+                    *self.t_offset.insert(e.t)
+                }
+            };
+            let rel = e.t.checked_sub(offset).ok_or_else(|| {
+                bad(format!(
+                    "{} us is too far from the first event's {offset} us for a 64-bit offset",
+                    e.t
+                ))
+            })?;
+            if rel > T32_MAX && !self.t_wide {
+                self.widen_t()?;
+            }
+            // The first event at or after millisecond `next_ms` (events come in time order):
+            // every millisecond up to this event's starts here.
+            let ms = (rel / 1000) as u64;
+            while self.next_ms <= ms {
+                self.bms.push(self.count);
+                self.next_ms += 1;
+                if self.bms.len() >= CHUNK {
+                    self.flush_ms()?;
+                }
+            }
+            self.bx.push(e.x);
+            self.by.push(e.y);
+            self.bt.push(rel);
+            self.bp.push(e.on as u8);
+            self.count += 1;
+            if self.bx.len() >= CHUNK {
+                self.flush_events()?;
+            }
+        }
+        Ok(())
+    }
+
+    fn finish(&mut self) -> Result<()> {
+        self.flush_events()?;
+        self.flush_ms()?;
+        let (Some(columns), Some(file)) = (self.columns.take(), self.file.take()) else {
+            return Err(bad("finished twice"));
+        };
+        drop(columns);
+        file.flush().map_err(h5err("cannot flush the file"))?;
+        file.close().map_err(h5err("cannot close the file"))
+    }
+}
+
+/// How a column's values are read.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Int {
+    /// Any integer type up to 64 bits signed (or 32 unsigned): read as i64.
+    Signed,
+    /// u64: read as such, then checked into i64.
+    U64,
+}
+
+/// Opens `events/NAME`, checks it is a 1-D integer dataset whose filters are available, and
+/// returns it with how to read it.
+fn open_column(events: &h5::Group, name: &str) -> Result<(h5::Dataset, Int)> {
+    let what = format!("{EVENTS}/{name}");
+    let ds = events
+        .dataset(name)
+        .map_err(|_| bad(format!("no {what} dataset")))?;
+    if ds.ndim() != 1 {
+        return Err(bad(format!(
+            "{what} has shape {:?}; expected one dimension",
+            ds.shape()
+        )));
+    }
+    let dtype = ds
+        .dtype()
+        .and_then(|d| d.to_descriptor())
+        .map_err(h5err(&what))?;
+    let int = match dtype {
+        TypeDescriptor::Unsigned(IntSize::U8) => Int::U64,
+        TypeDescriptor::Integer(_) | TypeDescriptor::Unsigned(_) => Int::Signed,
+        other => return Err(bad(format!("{what} holds {other}; expected integers"))),
+    };
+    let plist = ds.create_plist().map_err(h5err(&what))?;
+    if let Some(f) = plist.filters().iter().find(|f| !f.is_available()) {
+        let name = match f.id() {
+            32001 => "blosc (as in DSEC's files)".to_string(),
+            id => format!("number {id}"),
+        };
+        return Err(bad(format!(
+            "{what} is compressed with HDF5 filter {name}, which this HDF5 library lacks \
+             (put its plugin on HDF5_PLUGIN_PATH, or rewrite the file with gzip or no compression)"
+        )));
+    }
+    Ok((ds, int))
+}
+
+/// Reads `range` of a column as i64.
+fn read_column(ds: &h5::Dataset, int: Int, range: Range<usize>, what: &str) -> Result<Vec<i64>> {
+    let err = || h5err(what);
+    match int {
+        Int::Signed => Ok(ds
+            .read_slice_1d::<i64, _>(range)
+            .map_err(err())?
+            .into_raw_vec_and_offset()
+            .0),
+        Int::U64 => ds
+            .read_slice_1d::<u64, _>(range)
+            .map_err(err())?
+            .iter()
+            .map(|&v| i64::try_from(v).map_err(|_| bad(format!("{what} holds {v}"))))
+            .collect(),
+    }
+}
+
+/// Reads an integer attribute of the root group, `None` when absent.
+fn read_root_attr(file: &h5::File, name: &str) -> Result<Option<i64>> {
+    if !file
+        .attr_names()
+        .map_err(h5err("attributes"))?
+        .iter()
+        .any(|n| n == name)
+    {
+        return Ok(None);
+    }
+    file.attr(name)
+        .and_then(|a| a.read_scalar::<i64>())
+        .map(Some)
+        .map_err(h5err(name))
+}
+
+/// Reads an HDF5 event file in the DSEC layout (see the module docs) a slice at a time.
+pub struct Decoder {
+    x: (h5::Dataset, Int),
+    y: (h5::Dataset, Int),
+    t: (h5::Dataset, Int),
+    p: (h5::Dataset, Int),
+    len: usize,
+    pos: usize,
+    t_offset: i64,
+    size: Option<(u16, u16)>,
+    compression: String,
+    _file: h5::File,
+}
+
+impl Decoder {
+    /// Opens `path` and checks its layout (the four columns, their lengths, `t_offset`, the
+    /// size attributes).
+    pub fn open(path: &Path) -> Result<Self> {
+        let file = h5::File::open(path).map_err(|e| bad(format!("cannot open as HDF5: {e}")))?;
+        let events = file
+            .group(EVENTS)
+            .map_err(|_| bad(format!("no {EVENTS} group (not a DSEC-layout event file)")))?;
+        let x = open_column(&events, "x")?;
+        let y = open_column(&events, "y")?;
+        let t = open_column(&events, "t")?;
+        let p = open_column(&events, "p")?;
+        let len = x.0.size();
+        for (name, col) in [("y", &y), ("t", &t), ("p", &p)] {
+            if col.0.size() != len {
+                return Err(bad(format!(
+                    "{EVENTS}/x has {len} values but {EVENTS}/{name} has {}",
+                    col.0.size()
+                )));
+            }
+        }
+        let t_offset = if file.link_exists(T_OFFSET) {
+            let ds = file.dataset(T_OFFSET).map_err(h5err(T_OFFSET))?;
+            if ds.size() != 1 {
+                return Err(bad(format!(
+                    "{T_OFFSET} has {} values; expected one",
+                    ds.size()
+                )));
+            }
+            ds.read_raw::<i64>().map_err(h5err(T_OFFSET))?[0]
+        } else {
+            0
+        };
+        let size = match (
+            read_root_attr(&file, "width")?,
+            read_root_attr(&file, "height")?,
+        ) {
+            (Some(w), Some(h)) => {
+                let fit = |v: i64| u16::try_from(v).ok().filter(|&v| v > 0);
+                match (fit(w), fit(h)) {
+                    (Some(w), Some(h)) => Some((w, h)),
+                    _ => return Err(bad(format!("a {w} x {h} sensor"))),
+                }
+            }
+            _ => None,
+        };
+        let compression = describe_filters(&t.0);
+        Ok(Decoder {
+            x,
+            y,
+            t,
+            p,
+            len,
+            pos: 0,
+            t_offset,
+            size,
+            compression,
+            _file: file,
+        })
+    }
+
+    /// The file's `t_offset` (0 when absent), in us: added to `events/t`.
+    pub fn t_offset(&self) -> i64 {
+        self.t_offset
+    }
+
+    /// The number of events in the file.
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    /// Whether the file has no events.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// The filters `events/t` is stored with, e.g. `shuffle+deflate` (`none` without).
+    pub fn compression(&self) -> &str {
+        &self.compression
+    }
+}
+
+/// A dataset's filters by name, joined with `+`, or `none`.
+fn describe_filters(ds: &h5::Dataset) -> String {
+    let names: Vec<String> = ds
+        .create_plist()
+        .map(|p| p.filters())
+        .unwrap_or_default()
+        .iter()
+        .map(|f| match f {
+            h5::filters::Filter::Deflate(_) => "deflate".to_string(),
+            h5::filters::Filter::Shuffle => "shuffle".to_string(),
+            h5::filters::Filter::Fletcher32 => "fletcher32".to_string(),
+            h5::filters::Filter::SZip(..) => "szip".to_string(),
+            h5::filters::Filter::NBit => "nbit".to_string(),
+            h5::filters::Filter::ScaleOffset(_) => "scaleoffset".to_string(),
+            other => match other.id() {
+                32001 => "blosc".to_string(),
+                id => format!("filter {id}"),
+            },
+        })
+        .collect();
+    if names.is_empty() {
+        "none".into()
+    } else {
+        names.join("+")
+    }
+}
+
+impl EventDecoder for Decoder {
+    fn size(&self) -> Option<(u16, u16)> {
+        self.size
+    }
+
+    fn read_events(&mut self, out: &mut Vec<Event>, max: usize) -> Result<usize> {
+        let n = max.max(1).min(self.len - self.pos);
+        if n == 0 {
+            return Ok(0);
+        }
+        let range = self.pos..self.pos + n;
+        let x = read_column(&self.x.0, self.x.1, range.clone(), "events/x")?;
+        let y = read_column(&self.y.0, self.y.1, range.clone(), "events/y")?;
+        let t = read_column(&self.t.0, self.t.1, range.clone(), "events/t")?;
+        let p = read_column(&self.p.0, self.p.1, range, "events/p")?;
+        out.reserve(n);
+        for (i, (((&x, &y), &t), &p)) in x.iter().zip(&y).zip(&t).zip(&p).enumerate() {
+            let at = self.pos + i;
+            let pixel = |v: i64, what: &str| {
+                u16::try_from(v).map_err(|_| bad(format!("event {at}: {what} = {v}")))
+            };
+            let on = match p {
+                1 => true,
+                0 | -1 => false,
+                _ => return Err(bad(format!("event {at}: polarity {p} (expected 1 or 0)"))),
+            };
+            let t = t.checked_add(self.t_offset).ok_or_else(|| {
+                bad(format!(
+                    "event {at}: time {t} + t_offset {} overflows",
+                    self.t_offset
+                ))
+            })?;
+            out.push(Event::new(t, pixel(x, "x")?, pixel(y, "y")?, on));
+        }
+        self.pos += n;
+        Ok(n)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn temp_dir(name: &str) -> std::path::PathBuf {
+        let dir = std::env::temp_dir().join(format!("v2ce-h5-{name}-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        dir
+    }
+
+    fn write(path: &Path, w: u16, h: u16, events: &[Event], chunk: usize) {
+        let mut enc = Encoder::create(path, w, h).unwrap();
+        for part in events.chunks(chunk.max(1)) {
+            enc.write(part).unwrap();
+        }
+        enc.finish().unwrap();
+    }
+
+    fn read(path: &Path, max: usize) -> (Option<(u16, u16)>, Vec<Event>) {
+        let mut dec = Decoder::open(path).unwrap();
+        let mut got = Vec::new();
+        while dec.read_events(&mut got, max).unwrap() > 0 {}
+        (dec.size(), got)
+    }
+
+    /// `ms_to_idx` computed directly from the definition (for sorted times): the count of
+    /// events before each millisecond.
+    fn ms_to_idx_of(rel: &[i64]) -> Vec<u64> {
+        let Some(&last) = rel.last() else {
+            return Vec::new();
+        };
+        (0..=last / 1000)
+            .map(|m| rel.partition_point(|&t| t < m * 1000) as u64)
+            .collect()
+    }
+
+    fn stored(path: &Path) -> (Vec<i64>, Vec<u64>, i64, TypeDescriptor) {
+        let f = h5::File::open(path).unwrap();
+        let t = f.dataset("events/t").unwrap();
+        let dtype = t.dtype().unwrap().to_descriptor().unwrap();
+        (
+            t.read_raw::<i64>().unwrap(),
+            f.dataset(MS_TO_IDX).unwrap().read_raw::<u64>().unwrap(),
+            f.dataset(T_OFFSET).unwrap().read_scalar::<i64>().unwrap(),
+            dtype,
+        )
+    }
+
+    #[test]
+    fn round_trip_with_ms_to_idx() {
+        let dir = temp_dir("round");
+        let path = dir.join("e.h5");
+        // Several seconds, ON and OFF, runs of equal times, gaps of several milliseconds, and
+        // more events than a chunk.
+        let t0 = 1_700_000_000_123_456;
+        let events: Vec<Event> = (0..150_000i64)
+            .map(|i| {
+                let t = t0 + (i / 3) * 97 + (i / 10_000) * 7_000;
+                Event::new(t, (i % 640) as u16, (i * 7 % 480) as u16, i % 5 < 2)
+            })
+            .collect();
+        assert!(events.last().unwrap().t - t0 > 4_000_000);
+        write(&path, 640, 480, &events, 7_777);
+        let (size, got) = read(&path, 10_000);
+        assert_eq!(size, Some((640, 480)));
+        assert_eq!(got, events);
+        let (t, ms, offset, dtype) = stored(&path);
+        assert_eq!(offset, t0);
+        assert_eq!(dtype, TypeDescriptor::Unsigned(IntSize::U4));
+        assert_eq!(t[0], 0);
+        assert_eq!(ms, ms_to_idx_of(&t));
+        // Through `open` and `read_events`, by extension.
+        std::fs::copy(&path, dir.join("e.hdf5")).unwrap();
+        let rec = super::super::read_events(&dir.join("e.hdf5")).unwrap();
+        assert_eq!(rec.events.events(), &events[..]);
+        assert_eq!((rec.width, rec.height), (640, 480));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn long_recordings_widen_t_to_i64() {
+        let dir = temp_dir("wide");
+        let path = dir.join("e.h5");
+        // 100 000 events over 5 hours, so the widening copies more than a chunk.
+        let events: Vec<Event> = (0..100_000i64)
+            .map(|i| Event::new(-5_000 + i * 180_000, (i % 8) as u16, 3, i % 2 == 0))
+            .collect();
+        write(&path, 8, 4, &events, 50_000);
+        let (_, got) = read(&path, 65_536);
+        assert_eq!(got, events);
+        let (t, ms, offset, dtype) = stored(&path);
+        assert_eq!(offset, -5_000);
+        assert_eq!(dtype, TypeDescriptor::Integer(IntSize::U8));
+        assert_eq!(ms.len() as i64, t.last().unwrap() / 1000 + 1);
+        for (m, &i) in ms.iter().enumerate().step_by(997) {
+            let i = i as usize;
+            assert!(t[i] >= m as i64 * 1000 && (i == 0 || t[i - 1] < m as i64 * 1000));
+        }
+        let f = h5::File::open(&path).unwrap();
+        assert!(!f.group(EVENTS).unwrap().link_exists(T_WIDE_TEMP));
+        drop(f);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn empty_stream_and_encoder_errors() {
+        let dir = temp_dir("empty");
+        let path = dir.join("e.h5");
+        write(&path, 32, 16, &[], 1);
+        let (size, got) = read(&path, 100);
+        assert_eq!((size, got.len()), (Some((32, 16)), 0));
+        let (t, ms, offset, _) = stored(&path);
+        assert_eq!((t.len(), ms.len(), offset), (0, 0, 0));
+        let mut enc = Encoder::create(&path, 32, 16).unwrap();
+        assert!(enc.write(&[Event::new(5, 32, 0, true)]).is_err());
+        enc.write(&[Event::new(5, 31, 15, true)]).unwrap();
+        assert!(enc.write(&[Event::new(4, 0, 0, true)]).is_err());
+        enc.finish().unwrap();
+        assert!(enc.finish().is_err());
+        assert!(enc.write(&[Event::new(6, 0, 0, true)]).is_err());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// Writes an HDF5 file with the given `events/NAME` u16 columns (`t` as u32).
+    fn write_columns(path: &Path, columns: &[(&str, usize)]) {
+        let f = h5::File::create(path).unwrap();
+        let g = f.create_group(EVENTS).unwrap();
+        for &(name, n) in columns {
+            let values: Vec<u32> = (0..n as u32).collect();
+            if name == "t" {
+                g.new_dataset_builder()
+                    .with_data(&values)
+                    .create(name)
+                    .unwrap();
+            } else {
+                let values: Vec<u16> = values.iter().map(|&v| (v % 2) as u16).collect();
+                g.new_dataset_builder()
+                    .with_data(&values)
+                    .create(name)
+                    .unwrap();
+            }
+        }
+    }
+
+    fn open_error(path: &Path) -> String {
+        match Decoder::open(path) {
+            Ok(_) => panic!("{} opened", path.display()),
+            Err(e) => e.to_string(),
+        }
+    }
+
+    #[test]
+    fn bad_files_are_errors() {
+        let dir = temp_dir("bad");
+        let p = dir.join("not.h5");
+        std::fs::write(&p, b"this is not an HDF5 file").unwrap();
+        assert!(open_error(&p).contains("cannot open as HDF5"));
+        let err = super::super::open(&p).err().unwrap().to_string();
+        assert!(err.contains("not.h5") && err.contains("HDF5"), "{err}");
+        let p = dir.join("no-t.h5");
+        write_columns(&p, &[("x", 3), ("y", 3), ("p", 3)]);
+        assert!(open_error(&p).contains("no events/t"), "{}", open_error(&p));
+        let p = dir.join("lengths.h5");
+        write_columns(&p, &[("x", 3), ("y", 3), ("t", 4), ("p", 3)]);
+        assert!(
+            open_error(&p).contains("events/t has 4"),
+            "{}",
+            open_error(&p)
+        );
+        // Well formed, no t_offset, no size: DSEC-like; then a polarity out of range.
+        let p = dir.join("ok.h5");
+        write_columns(&p, &[("x", 3), ("y", 3), ("t", 3), ("p", 3)]);
+        let (size, got) = read(&p, 2);
+        assert_eq!(size, None);
+        assert_eq!(
+            got,
+            [
+                Event::new(0, 0, 0, false),
+                Event::new(1, 1, 1, true),
+                Event::new(2, 0, 0, false)
+            ]
+        );
+        {
+            let f = h5::File::open_rw(&p).unwrap();
+            f.dataset("events/p")
+                .unwrap()
+                .write_slice(&[7u16], 1..2)
+                .unwrap();
+        }
+        let mut dec = Decoder::open(&p).unwrap();
+        let err = dec
+            .read_events(&mut Vec::new(), 10)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("polarity 7"), "{err}");
+        // Cut short: the file's end is gone.
+        let p = dir.join("cut.h5");
+        let bytes = std::fs::read(dir.join("ok.h5")).unwrap();
+        std::fs::write(&p, &bytes[..bytes.len() / 2]).unwrap();
+        if let Ok(mut dec) = Decoder::open(&p) {
+            let mut out = Vec::new();
+            while let Ok(n) = dec.read_events(&mut out, 10) {
+                if n == 0 {
+                    break;
+                }
+            }
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}
