@@ -395,6 +395,7 @@ pub fn bench(
                 idle: Duration::from_secs(3600),
                 max_events: None,
                 recv_buffer: 0,
+                priority: 5,
             };
             crate::listen::listen(&options, &done, |at| {
                 let _ = port_tx.send(at.to_string());

@@ -20,6 +20,7 @@ pub mod listen;
 pub mod metrics;
 pub mod model;
 pub mod pipeline;
+pub mod realtime;
 pub mod render;
 pub mod sink;
 pub mod stage1;

@@ -56,6 +56,9 @@ pub struct ListenOptions {
     pub max_events: Option<u64>,
     /// Kernel receive buffer for UDP, bytes (0: the system's default).
     pub recv_buffer: usize,
+    /// Realtime (`SCHED_FIFO`) priority of the receiving thread, 1..=99, when the process may
+    /// (0: normal scheduling); see [`crate::realtime`].
+    pub priority: u8,
 }
 
 /// What [`listen`] got.
@@ -81,6 +84,8 @@ pub struct ListenReport {
     /// Arrival time minus event time, less its smallest value (formats with timestamps; a
     /// sender at event time keeps this near zero).
     pub arrival_spread: Option<Latency>,
+    /// The receiving thread ran at realtime priority (UDP; see `ListenOptions::priority`).
+    pub realtime: bool,
     /// First and last event time as received, us.
     pub first_t: Option<i64>,
     /// See `first_t`.
@@ -258,9 +263,17 @@ pub fn listen(
                 .set_read_timeout(Some(Duration::from_millis(50)))
                 .map_err(err)?;
             kernel_timestamps(&socket);
+            if let Err(e) = crate::realtime::make_realtime(options.priority) {
+                tracing::debug!(
+                    "receiver at normal priority (realtime {} refused: {e})",
+                    options.priority
+                );
+            }
+            let realtime = crate::realtime::is_realtime();
             let local = socket.local_addr().map_err(err)?;
             ready(&local.to_string());
             let mut tally = Tally::new(out(options.size)?);
+            tally.report.realtime = realtime;
             let timestamped = *format != UdpFormat::Spif;
             let mut buf = vec![0u8; 65_536];
             let mut events = Vec::new();

@@ -107,6 +107,11 @@ struct ListenArgs {
     /// Kernel receive buffer for UDP, bytes (0: the system's default).
     #[arg(long, default_value_t = 0)]
     recv_buffer: usize,
+    /// Realtime priority of the receiving thread, 1-99, when the process may (root or
+    /// CAP_SYS_NICE; 0: normal scheduling): on busy cores a receiver at normal priority can
+    /// wait milliseconds, and a default receive buffer holds about one at a million events/s.
+    #[arg(long, default_value_t = 5)]
+    priority: u8,
     /// Print the report as one JSON object on stdout.
     #[arg(long)]
     json: bool,
@@ -890,6 +895,7 @@ fn listen(args: ListenArgs) -> Result<()> {
         idle: seconds("--idle", args.idle)?,
         max_events: args.max_events,
         recv_buffer: args.recv_buffer,
+        priority: args.priority,
     };
     let stop = v2ce::daemon::stop_on_signals()?;
     let report = v2ce::listen::listen(&options, &stop, |at| {
@@ -920,6 +926,15 @@ fn listen(args: ListenArgs) -> Result<()> {
                 ))
                 .unwrap_or_default()
         );
+    }
+    if args.udp.is_some() || args.tcp.is_none() {
+        if !report.realtime && args.priority > 0 {
+            eprintln!(
+                "v2ce listen: the receiver ran at normal priority (realtime {} refused: needs root \
+                 or CAP_SYS_NICE); on busy cores it may lose datagrams",
+                args.priority
+            );
+        }
     }
     Ok(())
 }
