@@ -927,14 +927,13 @@ fn listen(args: ListenArgs) -> Result<()> {
                 .unwrap_or_default()
         );
     }
-    if args.udp.is_some() || args.tcp.is_none() {
-        if !report.realtime && args.priority > 0 {
-            eprintln!(
-                "v2ce listen: the receiver ran at normal priority (realtime {} refused: needs root \
-                 or CAP_SYS_NICE); on busy cores it may lose datagrams",
-                args.priority
-            );
-        }
+    let udp = args.udp.is_some() || args.tcp.is_none();
+    if udp && !report.realtime && args.priority > 0 {
+        eprintln!(
+            "v2ce listen: the receiver ran at normal priority (realtime {} refused: needs root or \
+             CAP_SYS_NICE); on busy cores it may lose datagrams",
+            args.priority
+        );
     }
     Ok(())
 }
