@@ -386,7 +386,9 @@ impl Read for Patient<'_> {
 }
 
 /// Asks the kernel to stamp each datagram with the time it arrived (`SO_TIMESTAMPNS`), so
-/// arrival times do not include how long this thread took to be scheduled.
+/// arrival times do not include how long this thread took to be scheduled. (In a process that
+/// is the machine's first to ask, the kernel's switch takes a moment, and datagrams read before
+/// then are stamped at the read.)
 fn kernel_timestamps(socket: &UdpSocket) {
     use std::os::fd::AsRawFd;
     let on: libc::c_int = 1;
@@ -475,6 +477,12 @@ mod tests {
         let rx = UdpSocket::bind("127.0.0.1:0").unwrap();
         kernel_timestamps(&rx);
         let tx = UdpSocket::bind("127.0.0.1:0").unwrap();
+        // The kernel turns receive stamping on for the whole machine a moment after the first
+        // socket asks (a deferred switch); until then it stamps at the read. Let it.
+        std::thread::sleep(Duration::from_millis(50));
+        tx.send_to(b"warm", rx.local_addr().unwrap()).unwrap();
+        let mut warm = [0u8; 16];
+        recv_stamped(&rx, &mut warm).unwrap();
         let sent = Instant::now();
         tx.send_to(b"four", rx.local_addr().unwrap()).unwrap();
         // The receiver comes late to the datagram.
