@@ -105,7 +105,7 @@ pub fn open_source(config: &Config) -> Result<(Source, String)> {
         SourceChoice::File(path) => {
             let options = SourceOptions {
                 fps: (run.fps > 0.0).then_some(run.fps),
-                linear: false,
+                color: crate::frame::images::ColorSpace::Auto,
             };
             (
                 Box::new(move || sized(frame::open(&path, &options)?)),

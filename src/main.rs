@@ -468,8 +468,13 @@ struct ConvertArgs {
     /// one).
     #[arg(long)]
     fps: Option<f64>,
-    /// Image values are linear in the light (raw sensor exports), not sRGB.
-    #[arg(long)]
+    /// How image values relate to the light: auto (linear for a recognised DAVIS APS export,
+    /// else sRGB, warning for gray images), srgb (camera video, photos) or linear (raw sensor
+    /// exports).
+    #[arg(long, value_enum, default_value_t = v2ce::frame::images::ColorSpace::Auto)]
+    color: v2ce::frame::images::ColorSpace,
+    /// The same as --color linear.
+    #[arg(long, conflicts_with = "color")]
     linear: bool,
     #[command(flatten)]
     encoding: EncodingArgs,
@@ -714,6 +719,7 @@ fn bench(args: BenchArgs) -> Result<()> {
 
 fn convert(args: ConvertArgs) -> Result<()> {
     use std::io::IsTerminal;
+    init_logging();
     use v2ce::stage1::{Preset, Stage1Output};
     let mut config = match &args.config {
         Some(path) => Config::load(path)?,
@@ -741,7 +747,11 @@ fn convert(args: ConvertArgs) -> Result<()> {
     }
     let options = v2ce::frame::SourceOptions {
         fps: args.fps,
-        linear: args.linear,
+        color: if args.linear {
+            v2ce::frame::images::ColorSpace::Linear
+        } else {
+            args.color
+        },
     };
     let mut source = if args.input.as_os_str() == v2ce::frame::fixture::NAME {
         v2ce::frame::fixture::open()?

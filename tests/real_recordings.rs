@@ -142,7 +142,7 @@ fn aps_frames_match_the_png_export() {
     let mut aps = frame::open(&d.join("davis346/davis346.aedat4"), &Default::default()).unwrap();
     let options = frame::SourceOptions {
         fps: None,
-        linear: true,
+        color: frame::images::ColorSpace::Linear,
     };
     let mut png = frame::open(&d.join("davis346/ijrr_export"), &options).unwrap();
     assert_eq!(aps.size(), (346, 260));
@@ -155,6 +155,49 @@ fn aps_frames_match_the_png_export() {
     }
     assert!(png.next_frame().unwrap().is_none());
     assert_eq!(n, 59);
+}
+
+/// `v2ce convert` on the AEDAT 4.0 file and on its PNG export (its `images.txt` given as the
+/// input, colour space left to `auto`, which recognises the export) gives the same events,
+/// every time to the microsecond once the export's origin is added back.
+#[test]
+fn converting_the_aedat4_and_its_png_export_gives_the_same_events() {
+    let d = data_or_skip!("converting_the_aedat4_and_its_png_export_gives_the_same_events");
+    let out = std::env::temp_dir().join(format!("v2ce-aps-vs-png-{}", std::process::id()));
+    std::fs::create_dir_all(&out).unwrap();
+    let convert = |input: &std::path::Path, name: &str| {
+        let path = out.join(name);
+        let run = std::process::Command::new(env!("CARGO_BIN_EXE_v2ce"))
+            .arg("convert")
+            .arg(input)
+            .arg("-o")
+            .arg(&path)
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&run.stderr).to_string();
+        assert!(run.status.success(), "{stderr}");
+        (format::read_events(&path).unwrap(), stderr)
+    };
+    let (aedat, _) = convert(&d.join("davis346/davis346.aedat4"), "aedat4.csv");
+    let (png, said) = convert(&d.join("davis346/ijrr_export/images.txt"), "png.csv");
+    assert!(said.contains("recognised as a DAVIS APS export"), "{said}");
+    let shifted: Vec<_> = png
+        .events
+        .events()
+        .iter()
+        .map(|e| v2ce::event::Event::new(e.t + IJRR_T0, e.x, e.y, e.on))
+        .collect();
+    assert!(aedat.events.len() > 10_000, "{}", aedat.events.len());
+    let differ = aedat
+        .events
+        .events()
+        .iter()
+        .zip(&shifted)
+        .filter(|(a, b)| a != b)
+        .count();
+    assert_eq!(aedat.events.len(), shifted.len());
+    assert_eq!(differ, 0, "{differ} of {} events differ", shifted.len());
+    std::fs::remove_dir_all(&out).unwrap();
 }
 
 /// The physics tier on the davis346 APS frames, scored against the real events: the default

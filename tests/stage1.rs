@@ -128,6 +128,37 @@ fn same_seed_same_stream_other_seed_other_noise() {
         .all(|w| w[0].t <= w[1].t || w[1].t < w[0].t - 10_000));
 }
 
+/// The same frames with their times moved by a DAVIS clock's origin (1.6e15 us) give the same
+/// events moved by the same amount, to the microsecond, noise included: nothing depends on
+/// where the time axis starts (a recording and its export with relative times agree).
+#[test]
+fn events_do_not_depend_on_the_time_origin() {
+    const ORIGIN: i64 = 1_589_163_147_364_965;
+    let frames: Vec<Frame> = {
+        let mut src = SceneSource::moving_edge(64, 48, 25.0, 30, 5.0, 300.0, (0.1, 0.6));
+        std::iter::from_fn(|| src.next_frame().unwrap()).collect()
+    };
+    let go = |shift: i64| {
+        let mut sim = PhysicsSim::new(Preset::Davis346.config(), 64, 48, 7).unwrap();
+        let mut events = Vec::new();
+        for f in &frames {
+            let mut f = f.clone();
+            f.t += shift;
+            sim.step(&f, &mut events).unwrap();
+        }
+        events
+    };
+    let near = go(0);
+    let far: Vec<Event> = go(ORIGIN)
+        .into_iter()
+        .map(|e| Event::new(e.t - ORIGIN, e.x, e.y, e.on))
+        .collect();
+    assert!(near.len() > 1000, "{}", near.len());
+    let differ = near.iter().zip(&far).filter(|(a, b)| a != b).count();
+    assert_eq!(near.len(), far.len());
+    assert_eq!(differ, 0, "{differ} of {} events differ", near.len());
+}
+
 #[test]
 fn a_static_scene_skips_its_tiles_and_fires_only_noise() {
     let mut src = SceneSource::still(128, 96, 30.0, 40);

@@ -1,10 +1,16 @@
 //! A folder of PNG or JPEG images as a frame source.
 //!
-//! Frame times come from, in order of preference: an `images.txt` in the folder (IJRR layout:
+//! Frame times come from, in order of preference: a frame list given by name (an IJRR
+//! `images.txt` or a `times.txt` anywhere), an `images.txt` in the folder (IJRR layout:
 //! `t_seconds relative/path` per line, which also names the images), a `times.txt` (one time in
 //! seconds per line, for the images sorted by name), or a frame rate (`--fps`). Images are
-//! decoded with the `image` crate; colour and gray values go through the sRGB transfer function
-//! unless the source is marked linear (raw sensor exports such as DAVIS APS frames).
+//! decoded with the `image` crate.
+//!
+//! Colour space ([`ColorSpace`]): values go through the sRGB transfer function (camera video,
+//! photos) or are taken as linear in the light (raw sensor exports such as DAVIS APS frames).
+//! `auto` (the default) reads an APS export as linear when it recognises one, the IJRR layout
+//! of 8-bit gray images listed in an `images.txt` beside an `events.txt`, and otherwise takes
+//! sRGB, with a warning for gray images, whose colour space is then a guess.
 
 use std::path::{Path, PathBuf};
 
@@ -13,6 +19,29 @@ use super::{check_order, Frame, FrameSource};
 use crate::error::{Error, Result};
 use crate::format::ijrr::parse_seconds_us;
 
+/// How image values relate to the light.
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Default,
+    serde::Deserialize,
+    serde::Serialize,
+    clap::ValueEnum,
+)]
+#[serde(rename_all = "kebab-case")]
+pub enum ColorSpace {
+    /// Linear for a recognised APS export, else sRGB (warning for gray images).
+    #[default]
+    Auto,
+    /// sRGB-encoded (camera video, photos).
+    Srgb,
+    /// Linear in the light (raw sensor exports).
+    Linear,
+}
+
 /// Reads images from a folder.
 pub struct ImageFolder {
     folder: PathBuf,
@@ -20,17 +49,49 @@ pub struct ImageFolder {
     next: usize,
     size: (u16, u16),
     linear: bool,
+    /// Why the colour space is what it is, for logs.
+    color_note: &'static str,
+}
+
+/// What a frame list file holds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FrameList {
+    /// IJRR `images.txt`: `t_seconds image_path` per line.
+    Images,
+    /// `times.txt`: one time in seconds per line, for the folder's images sorted by name.
+    Times,
+}
+
+/// Whether the text file `path` is a frame list, and which kind (from its first line that is
+/// not blank or a comment); `None` for anything else.
+pub fn frame_list_kind(path: &Path) -> Option<FrameList> {
+    let text = std::fs::read(path).ok()?;
+    let head = &text[..text.len().min(1 << 16)];
+    let line = std::str::from_utf8(head)
+        .ok()?
+        .lines()
+        .map(str::trim)
+        .find(|l| !l.is_empty() && !l.starts_with('#'))?;
+    let mut fields = line.split_whitespace();
+    let time = fields.next().and_then(parse_seconds_us);
+    match (time, fields.next(), fields.next()) {
+        (Some(_), Some(image), None) if is_image(Path::new(image)) => Some(FrameList::Images),
+        (Some(_), None, None) => Some(FrameList::Times),
+        _ => None,
+    }
+}
+
+fn is_image(p: &Path) -> bool {
+    p.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| matches!(e.to_ascii_lowercase().as_str(), "png" | "jpg" | "jpeg"))
 }
 
 fn list_images(folder: &Path) -> Result<Vec<PathBuf>> {
     let mut files: Vec<PathBuf> = std::fs::read_dir(folder)
         .map_err(|e| Error::io(folder, e))?
         .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| {
-            p.extension()
-                .and_then(|e| e.to_str())
-                .is_some_and(|e| matches!(e.to_ascii_lowercase().as_str(), "png" | "jpg" | "jpeg"))
-        })
+        .filter(|p| is_image(p))
         .collect();
     files.sort();
     Ok(files)
@@ -47,11 +108,40 @@ fn read_lines(path: &Path) -> Result<Vec<String>> {
 }
 
 impl ImageFolder {
-    /// Lists the folder's frames and reads the first to learn the size; `linear` skips the
-    /// sRGB transfer function.
-    pub fn open(folder: &Path, fps: Option<f64>, linear: bool) -> Result<Self> {
-        let ijrr = folder.join("images.txt");
-        let times = folder.join("times.txt");
+    /// Lists the folder's frames and reads the first to learn the size and, for
+    /// [`ColorSpace::Auto`], the colour space.
+    pub fn open(folder: &Path, fps: Option<f64>, color: ColorSpace) -> Result<Self> {
+        Self::open_list(folder, None, fps, color)
+    }
+
+    /// [`ImageFolder::open`] with the frame list named: an IJRR `images.txt` or a `times.txt`
+    /// (its folder holds the images).
+    pub fn open_list_file(list: &Path, color: ColorSpace) -> Result<Self> {
+        let kind = frame_list_kind(list).ok_or_else(|| {
+            Error::format(
+                list,
+                "not a frame list: expected 't_seconds image_path' lines (IJRR images.txt) or one time in seconds per line (times.txt)",
+            )
+        })?;
+        let folder = match list.parent() {
+            Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+            _ => PathBuf::from("."),
+        };
+        Self::open_list(&folder, Some((list, kind)), None, color)
+    }
+
+    fn open_list(
+        folder: &Path,
+        list: Option<(&Path, FrameList)>,
+        fps: Option<f64>,
+        color: ColorSpace,
+    ) -> Result<Self> {
+        let (ijrr, times) = match list {
+            Some((p, FrameList::Images)) => (p.to_path_buf(), PathBuf::new()),
+            Some((p, FrameList::Times)) => (PathBuf::new(), p.to_path_buf()),
+            None => (folder.join("images.txt"), folder.join("times.txt")),
+        };
+        let listed = ijrr.is_file();
         let frames: Vec<(i64, PathBuf)> = if ijrr.is_file() {
             read_lines(&ijrr)?
                 .iter()
@@ -110,12 +200,34 @@ impl ImageFolder {
             (Ok(w), Ok(h)) => (w, h),
             _ => return Err(Error::format(&first.1, "image too large")),
         };
+        let gray8 = img.color() == image::ColorType::L8;
+        let aps_export = listed && gray8 && folder.join("events.txt").is_file();
+        let (linear, color_note) = match color {
+            ColorSpace::Linear => (true, "linear, as asked"),
+            ColorSpace::Srgb => (false, "sRGB, as asked"),
+            ColorSpace::Auto if aps_export => (
+                true,
+                "linear: recognised as a DAVIS APS export (8-bit gray images in an images.txt beside events.txt); --color srgb to override",
+            ),
+            ColorSpace::Auto if !img.color().has_color() => {
+                tracing::warn!(
+                    "{}: gray images of unknown colour space, read as sRGB (camera video); raw sensor exports such as DAVIS APS frames are linear: pass --color linear",
+                    folder.display()
+                );
+                (false, "sRGB, a guess for gray images (--color linear for raw sensor exports)")
+            }
+            ColorSpace::Auto => (false, "sRGB (colour images)"),
+        };
+        if aps_export && color == ColorSpace::Auto {
+            tracing::info!("{}: {color_note}", folder.display());
+        }
         Ok(ImageFolder {
             folder: folder.to_path_buf(),
             frames,
             next: 0,
             size,
             linear,
+            color_note,
         })
     }
 }
@@ -177,10 +289,10 @@ impl FrameSource for ImageFolder {
 
     fn describe(&self) -> String {
         format!(
-            "{} images in {}{}",
+            "{} images in {} ({})",
             self.frames.len(),
             self.folder.display(),
-            if self.linear { " (linear)" } else { "" }
+            self.color_note
         )
     }
 

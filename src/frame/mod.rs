@@ -90,18 +90,20 @@ pub trait FrameSource: Send {
 pub struct SourceOptions {
     /// Frame rate for image folders without a times file.
     pub fps: Option<f64>,
-    /// Image values are linear in the light (raw sensor exports), not sRGB-encoded.
-    pub linear: bool,
+    /// How image values relate to the light (image folders and frame lists).
+    pub color: images::ColorSpace,
 }
 
-/// Opens `path` as a frame source: a folder of images, a `.y4m` (or `.y4m.zst`), an `.aedat4` with APS frames,
-/// or any other file as a video through the `ffmpeg` command-line tool.
+/// Opens `path` as a frame source: a folder of images, a frame list (an IJRR `images.txt` or a
+/// `times.txt`: its folder's images), a `.y4m` (or `.y4m.zst`), an `.aedat4` with APS frames, or
+/// any other file as a video through the `ffmpeg` command-line tool. A text file that is none of
+/// these is refused rather than handed to ffmpeg (which would render its text as frames).
 pub fn open(path: &Path, options: &SourceOptions) -> Result<Box<dyn FrameSource>> {
     if path.is_dir() {
         return Ok(Box::new(images::ImageFolder::open(
             path,
             options.fps,
-            options.linear,
+            options.color,
         )?));
     }
     if !path.exists() {
@@ -122,7 +124,38 @@ pub fn open(path: &Path, options: &SourceOptions) -> Result<Box<dyn FrameSource>
     match ext {
         "y4m" => Ok(Box::new(y4m::Y4mSource::open(path)?)),
         "aedat4" => Ok(Box::new(aps::ApsSource::open(path)?)),
+        _ if images::frame_list_kind(path).is_some() => Ok(Box::new(
+            images::ImageFolder::open_list_file(path, options.color)?,
+        )),
+        _ if is_plain_text(path, ext) => Err(Error::format(
+            path,
+            "a text file, not a video: give a video, an image folder, a frame list ('t_seconds image_path' lines, as IJRR's images.txt, or one time per line, as times.txt), a .y4m or an .aedat4 with APS frames",
+        )),
         _ => Ok(Box::new(ffmpeg::FfmpegSource::open(path)?)),
+    }
+}
+
+/// Whether `path` is plain text that ffmpeg should not be given: its first 4 KiB are UTF-8 with
+/// no NUL byte, and it is not one of ffmpeg's own text inputs (an SDP session, an HLS or M3U
+/// playlist, an ffconcat list). Every video container has binary bytes in its first 4 KiB.
+fn is_plain_text(path: &Path, ext: &str) -> bool {
+    if matches!(ext, "sdp" | "m3u8" | "m3u" | "ffconcat") {
+        return false;
+    }
+    let mut head = [0u8; 4096];
+    let n = match std::fs::File::open(path).and_then(|mut f| std::io::Read::read(&mut f, &mut head))
+    {
+        Ok(n) => n,
+        Err(_) => return false,
+    };
+    let head = &head[..n];
+    if head.is_empty() || head.contains(&0) || head.starts_with(b"ffconcat version") {
+        return false;
+    }
+    match std::str::from_utf8(head) {
+        Ok(_) => true,
+        // Cut inside a character at the 4 KiB mark: text all the same.
+        Err(e) => e.error_len().is_none() && e.valid_up_to() + 4 > n,
     }
 }
 

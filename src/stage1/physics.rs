@@ -528,7 +528,10 @@ impl PhysicsSim {
             } else {
                 u
             };
-            let t_start = t0 as f64 + h * (k - 1) as f64;
+            // Relative to the interval's start: absolute times (~1.6e15 us for a DAVIS clock)
+            // would cost f64 its microseconds, and a recording and its export with times from
+            // another origin would differ by 1 us here and there.
+            let t_start = h * (k - 1) as f64;
             loop {
                 let (level, polarity) = if y - lref >= on {
                     (lref + on, true)
@@ -542,7 +545,7 @@ impl PhysicsSim {
                 } else {
                     1.0
                 };
-                let te = ((t_start + frac * h).round() as i64).clamp(t0 + 1, t1);
+                let te = (t0 + (t_start + frac * h).round() as i64).clamp(t0 + 1, t1);
                 lref = level;
                 if ((te - last) as f64) < refractory {
                     self.stats.refractory_drops += 1;
