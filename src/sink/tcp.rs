@@ -359,7 +359,11 @@ fn serve(
     stream.set_nodelay(true).map_err(io)?;
     stream.set_write_timeout(Some(timeout)).map_err(io)?;
     let mut buf = Vec::new();
+    // The greeting goes at once: a client may wait for the header before it says it is ready.
     encoder.greeting(&mut buf);
+    stream.write_all(&buf).map_err(io)?;
+    written.fetch_add(buf.len() as u64, Ordering::Relaxed);
+    buf.clear();
     for batch in rx {
         encoder.encode(&batch, &mut buf)?;
         stream.write_all(&buf).map_err(io)?;
@@ -653,6 +657,20 @@ mod tests {
             assert_eq!(s.bytes_sent, (whole.len() + tail.len()) as u64);
         }
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn an_aedat4_client_gets_its_header_before_any_event() {
+        let mut sink = TcpSink::new(TcpConfig::new("127.0.0.1:0", 64, 48)).unwrap();
+        let stream = TcpStream::connect(sink.local_addr()).unwrap();
+        stream
+            .set_read_timeout(Some(Duration::from_secs(10)))
+            .unwrap();
+        wait_for_clients(&sink, 1);
+        // Nothing sent yet: the header must already be there (clients wait for it).
+        let r = Reader::new_stream(std::io::BufReader::new(stream)).unwrap();
+        assert_eq!(r.event_stream().unwrap().size, Some((64, 48)));
+        sink.finish().unwrap();
     }
 
     #[test]
