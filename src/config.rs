@@ -264,7 +264,7 @@ impl Config {
 
     /// Parses a TOML document; `origin` names it in errors.
     pub fn parse(text: &str, origin: &Path) -> Result<Self> {
-        let config: Config = toml::from_str(text).map_err(|e| {
+        let mut config: Config = toml::from_str(text).map_err(|e| {
             let at = e
                 .span()
                 .map(|s| {
@@ -274,6 +274,14 @@ impl Config {
                 .unwrap_or_default();
             Error::format(origin, format!("{at}{}", e.message()))
         })?;
+        if !config.stage1.preset_file.as_os_str().is_empty() {
+            let file = origin
+                .parent()
+                .map_or(config.stage1.preset_file.clone(), |d| {
+                    d.join(&config.stage1.preset_file)
+                });
+            config.stage1.load_preset_file(&file)?;
+        }
         if !(2..=1024).contains(&config.stage2.bins) {
             return Err(Error::format(
                 origin,
@@ -410,5 +418,38 @@ evt = 3
         c.run.wait_for_client = true;
         c.sink.push(SinkConfig::File(FileSinkConfig::new("a.csv")));
         assert!(c.validate().unwrap_err().to_string().contains("TCP"));
+    }
+
+    #[test]
+    fn a_preset_file_is_read_relative_to_the_config_and_replaces_the_preset() {
+        let dir = std::env::temp_dir().join(format!("v2ce-config-preset-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let mut sensor = crate::stage1::Preset::Dvxplorer.config();
+        sensor.threshold_on = 0.41;
+        std::fs::write(dir.join("sensor.toml"), toml::to_string(&sensor).unwrap()).unwrap();
+        let c = Config::parse(
+            "[stage1]\npreset_file = \"sensor.toml\"\n[stage1.physics]\nleak_hz = 0.5\n",
+            &dir.join("v2ce.toml"),
+        )
+        .unwrap();
+        let got = c.stage1.physics_config();
+        assert_eq!(got.threshold_on, 0.41);
+        assert_eq!(got.cutoff_hz, sensor.cutoff_hz);
+        // Overrides still apply on top.
+        assert_eq!(got.leak_hz, 0.5);
+        assert!(c.stage1.preset_name().contains("sensor.toml"));
+        // A bad file is an error naming it.
+        std::fs::write(dir.join("bad.toml"), "threshold_on = -1\n").unwrap();
+        let err = Config::parse(
+            "[stage1]\npreset_file = \"bad.toml\"\n",
+            &dir.join("v.toml"),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            err.contains("bad.toml") && err.contains("threshold_on"),
+            "{err}"
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

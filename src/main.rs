@@ -51,6 +51,43 @@ enum Command {
     /// The learned tier's network: import the official checkpoint, run a raw tensor.
     #[command(subcommand)]
     Model(ModelCommand),
+    /// Fit the physics tier to your own sensor from a recording with frames and events, and
+    /// write the fitted preset file (for --preset-file).
+    Calibrate(CalibrateArgs),
+}
+
+#[derive(Args)]
+struct CalibrateArgs {
+    /// The real recording: an .aedat4 with events and APS frames, or an event file whose frames
+    /// come from --frames (.aedat4, .raw, .csv, .h5, .npz, IJRR events.txt).
+    #[arg(long)]
+    real: PathBuf,
+    /// The frames, when the recording has none in it: a video, an image folder or a frame list
+    /// (IJRR images.txt), on the events' time base.
+    #[arg(long)]
+    frames: Option<PathBuf>,
+    /// Write the fitted preset file here (TOML: every [stage1.physics] parameter).
+    #[arg(short, long)]
+    output: PathBuf,
+    /// The preset the fit starts from and keeps what it does not fit of: davis346, dvxplorer,
+    /// ideal.
+    #[arg(long, default_value = "davis346")]
+    preset: String,
+    /// Seed of mismatch and noise in the fits.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// How --frames' image values relate to the light (as convert's --color).
+    #[arg(long, value_enum, default_value_t = v2ce::frame::images::ColorSpace::Auto)]
+    color: v2ce::frame::images::ColorSpace,
+    /// Use at most this many frames (they are held in memory).
+    #[arg(long, default_value_t = 3000)]
+    max_frames: usize,
+    /// Print the report as one JSON object on stdout.
+    #[arg(long)]
+    json: bool,
+    /// Overwrite an existing output file.
+    #[arg(long)]
+    force: bool,
 }
 
 #[derive(Args)]
@@ -308,6 +345,10 @@ struct RunArgs {
     /// Sensor preset of the physics tier: davis346, dvxplorer, ideal [config default: davis346].
     #[arg(long)]
     preset: Option<String>,
+    /// A preset file (as `v2ce calibrate` writes) instead of --preset [config default: "",
+    /// none].
+    #[arg(long, conflicts_with = "preset")]
+    preset_file: Option<PathBuf>,
     /// Serve an event stream to TCP clients on HOST:PORT [config default: "", off].
     #[arg(long)]
     tcp: Option<String>,
@@ -453,6 +494,10 @@ struct ConvertArgs {
     /// Sensor preset: davis346, dvxplorer, ideal [config default: davis346].
     #[arg(long)]
     preset: Option<String>,
+    /// A preset file (as `v2ce calibrate` writes) instead of --preset [config default: "",
+    /// none].
+    #[arg(long, conflicts_with = "preset")]
+    preset_file: Option<PathBuf>,
     /// Stage 1 output: events (direct) or voxels (re-timed by the Stage 2 sampler) [config
     /// default: events].
     #[arg(long, value_parser = ["events", "voxels"])]
@@ -555,6 +600,7 @@ fn main() -> ExitCode {
         Command::Model(ModelCommand::Import(args)) => model_import(args),
         Command::Model(ModelCommand::Run(args)) => model_run(args),
         Command::Model(ModelCommand::Bench(args)) => model_bench(args),
+        Command::Calibrate(args) => calibrate(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -653,6 +699,10 @@ fn run_config(args: &RunArgs) -> Result<Config> {
     }
     if let Some(p) = &args.preset {
         config.stage1.preset = v2ce::stage1::Preset::from_name(p)?;
+        config.stage1.custom = None;
+    }
+    if let Some(f) = &args.preset_file {
+        config.stage1.load_preset_file(f)?;
     }
     args.tier.apply(&mut config)?;
     config.validate()?;
@@ -727,6 +777,10 @@ fn convert(args: ConvertArgs) -> Result<()> {
     };
     if let Some(p) = &args.preset {
         config.stage1.preset = Preset::from_name(p)?;
+        config.stage1.custom = None;
+    }
+    if let Some(f) = &args.preset_file {
+        config.stage1.load_preset_file(f)?;
     }
     match args.mode.as_deref() {
         Some("voxels") => config.stage1.output = Stage1Output::Voxels,
@@ -944,6 +998,78 @@ fn listen(args: ListenArgs) -> Result<()> {
              CAP_SYS_NICE); on busy cores it may lose datagrams",
             args.priority
         );
+    }
+    Ok(())
+}
+
+fn calibrate(args: CalibrateArgs) -> Result<()> {
+    use v2ce::frame::FrameSource;
+    check_output(&args.output, args.force)?;
+    let base = v2ce::stage1::Preset::from_name(&args.preset)?;
+    let real = format::read_events(&args.real)?;
+    let options = v2ce::frame::SourceOptions {
+        fps: None,
+        color: args.color,
+    };
+    let frames_path = args.frames.as_deref().unwrap_or(&args.real);
+    let mut source: Box<dyn FrameSource> = v2ce::frame::open(frames_path, &options)?;
+    if source.size() != (real.width, real.height) {
+        return Err(Error::invalid(
+            "calibrate",
+            format!(
+                "frames of {} x {} for events of a {} x {} sensor",
+                source.size().0,
+                source.size().1,
+                real.width,
+                real.height
+            ),
+        ));
+    }
+    let mut frames = Vec::new();
+    while frames.len() < args.max_frames.max(5) {
+        match source.next_frame()? {
+            Some(f) => frames.push(f),
+            None => break,
+        }
+    }
+    let rec = v2ce::calibrate::Recording {
+        frames: &frames,
+        events: real.events.events(),
+        size: (real.width, real.height),
+    };
+    let fit = v2ce::calibrate::calibrate(&rec, &base.config(), args.seed)?;
+    let text = v2ce::calibrate::preset_file(&fit, base.name(), &args.real.display().to_string())?;
+    let tmp = args.output.with_extension("toml.partial");
+    std::fs::write(&tmp, text).map_err(|e| Error::io(&tmp, e))?;
+    std::fs::rename(&tmp, &args.output).map_err(|e| Error::io(&args.output, e))?;
+    if args.json {
+        let text =
+            serde_json::to_string(&fit).map_err(|e| Error::invalid("report", e.to_string()))?;
+        println!("{text}");
+    } else {
+        let c = &fit.config;
+        println!(
+            "fitted on {} intervals ({} runs): threshold ON {:.3} OFF {:.3}, sigma {:.3}, cutoff {:.0} Hz, leak {:.3} Hz, shot noise {:.3} Hz",
+            fit.intervals, fit.runs, c.threshold_on, c.threshold_off, c.threshold_sigma, c.cutoff_hz, c.leak_hz, c.shot_noise_hz
+        );
+        println!(
+            "all intervals: TF1 {:.3}, count ratio {:.3}",
+            fit.whole.tf1, fit.whole.count_ratio
+        );
+        for h in &fit.held_out {
+            println!(
+                "fitted on the {} half, scored on the other: TF1 {:.3} (count ratio {:.3}); {} {:.3} ({:.3}); ideal {:.3} ({:.3})",
+                h.fitted_on,
+                h.fitted.tf1,
+                h.fitted.count_ratio,
+                base.name(),
+                h.base.tf1,
+                h.base.count_ratio,
+                h.ideal.tf1,
+                h.ideal.count_ratio
+            );
+        }
+        eprintln!("v2ce: wrote {}", args.output.display());
     }
     Ok(())
 }

@@ -14,6 +14,13 @@ fn v2ce() -> Command {
     Command::new(env!("CARGO_BIN_EXE_v2ce"))
 }
 
+/// The tests of this file run one at a time: each runs a daemon and receivers in real time, and
+/// a receiver on a 2-core machine loses datagrams when another test's daemon takes the cores.
+fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
+    static LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    LOCK.lock().unwrap_or_else(|e| e.into_inner())
+}
+
 fn frames() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/learned/frames_61x83")
 }
@@ -59,6 +66,7 @@ fn read(path: &Path) -> Vec<Event> {
 
 #[test]
 fn listen_gets_every_event_the_daemon_sends_in_every_udp_format() {
+    let _one_at_a_time = one_at_a_time();
     let dir = common::temp_dir("listen-udp");
     for format in [
         "t64_x16_y16_on8",
@@ -184,6 +192,7 @@ fn tcp_config(dir: &Path, tcp_format: &str, file: &Path, evt: u8) -> PathBuf {
 
 #[test]
 fn listen_reads_the_daemons_tcp_stream() {
+    let _one_at_a_time = one_at_a_time();
     let dir = common::temp_dir("listen-tcp");
     for (tcp_format, file) in [("aedat4", "sent.csv"), ("evt2", "sent.raw")] {
         let sent = dir.join(format!("{tcp_format}-{file}"));
@@ -210,6 +219,7 @@ fn listen_reads_the_daemons_tcp_stream() {
 
 #[test]
 fn a_saved_raw_tcp_stream_is_the_daemons_raw_file_byte_for_byte() {
+    let _one_at_a_time = one_at_a_time();
     use std::io::Read;
     let dir = common::temp_dir("tcp-raw-bytes");
     for (tcp_format, evt) in [("evt2", 2), ("evt3", 3)] {
@@ -234,6 +244,7 @@ fn a_saved_raw_tcp_stream_is_the_daemons_raw_file_byte_for_byte() {
 
 #[test]
 fn sink_tables_send_to_several_udp_receivers_at_once() {
+    let _one_at_a_time = one_at_a_time();
     let dir = common::temp_dir("listen-two-udp");
     let sent = dir.join("sent.csv");
     let got = [dir.join("got-0.csv"), dir.join("got-1.csv")];
@@ -303,6 +314,7 @@ fn sink_tables_send_to_several_udp_receivers_at_once() {
 /// with in real time (as CI runs the tests); a debug build checks 346x260 and says so.
 #[test]
 fn listen_gets_every_event_of_the_default_daemon_at_both_sizes() {
+    let _one_at_a_time = one_at_a_time();
     let dir = common::temp_dir("listen-sizes");
     let sizes: &[&str] = if cfg!(debug_assertions) {
         eprintln!("SKIPPED at 640x480: a debug build cannot run it in real time");

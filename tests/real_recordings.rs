@@ -200,6 +200,70 @@ fn converting_the_aedat4_and_its_png_export_gives_the_same_events() {
     std::fs::remove_dir_all(&out).unwrap();
 }
 
+/// `v2ce calibrate` on the davis346 clip: fitted on each half of its intervals, it scores on
+/// the other half at least as well as the shipped preset (TF1 within 0.03), and the preset file
+/// it writes, given to `convert --preset-file`, reproduces the real event count.
+#[test]
+fn calibrate_fits_davis346_and_its_preset_file_converts() {
+    let d = data_or_skip!("calibrate_fits_davis346_and_its_preset_file_converts");
+    let rec = d.join("davis346/davis346.aedat4");
+    let out = std::env::temp_dir().join(format!("v2ce-calibrate-{}", std::process::id()));
+    std::fs::create_dir_all(&out).unwrap();
+    let preset = out.join("sensor.toml");
+    let run = |args: &[&std::ffi::OsStr]| {
+        let o = std::process::Command::new(env!("CARGO_BIN_EXE_v2ce"))
+            .args(args)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        o
+    };
+    let o = run(&[
+        "calibrate".as_ref(),
+        "--real".as_ref(),
+        rec.as_os_str(),
+        "-o".as_ref(),
+        preset.as_os_str(),
+        "--json".as_ref(),
+    ]);
+    let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    eprintln!("calibrate: {report}");
+    for h in report["held_out"].as_array().unwrap() {
+        let (fitted, base) = (
+            h["fitted"]["tf1"].as_f64().unwrap(),
+            h["base"]["tf1"].as_f64().unwrap(),
+        );
+        assert!(fitted >= base - 0.03, "{h}");
+        assert!(fitted > h["ideal"]["tf1"].as_f64().unwrap(), "{h}");
+    }
+    let sim = out.join("sim.csv");
+    run(&[
+        "convert".as_ref(),
+        rec.as_os_str(),
+        "--preset-file".as_ref(),
+        preset.as_os_str(),
+        "-o".as_ref(),
+        sim.as_os_str(),
+    ]);
+    let o = run(&[
+        "eval".as_ref(),
+        "stage1".as_ref(),
+        "--real".as_ref(),
+        rec.as_os_str(),
+        "--sim".as_ref(),
+        sim.as_os_str(),
+        "--json".as_ref(),
+    ]);
+    let scores: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let ratio = scores["count_ratio"].as_f64().unwrap();
+    eprintln!(
+        "convert --preset-file: TF1 {} count ratio {ratio}",
+        scores["tf1"]
+    );
+    assert!((0.9..=1.1).contains(&ratio), "{scores}");
+    std::fs::remove_dir_all(&out).unwrap();
+}
+
 /// The physics tier on the davis346 APS frames, scored against the real events: the default
 /// DAVIS346 preset beats the noiseless ideal sensor on TF1 and TPF1 with an event count within
 /// 0.5 to 2 times the real one.

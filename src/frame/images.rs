@@ -214,7 +214,7 @@ impl ImageFolder {
                     "{}: gray images of unknown colour space, read as sRGB (camera video); raw sensor exports such as DAVIS APS frames are linear: pass --color linear",
                     folder.display()
                 );
-                (false, "sRGB, a guess for gray images (--color linear for raw sensor exports)")
+                (false, "sRGB, a guess for gray images: --color linear for raw sensor exports")
             }
             ColorSpace::Auto => (false, "sRGB (colour images)"),
         };

@@ -16,7 +16,7 @@ pub mod physics;
 
 use serde::{Deserialize, Serialize};
 
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::event::Event;
 use crate::frame::Frame;
 pub use crate::frame::SourceEncoding;
@@ -199,6 +199,12 @@ pub struct Stage1Config {
     pub tier: Tier,
     /// Sensor preset.
     pub preset: Preset,
+    /// A preset file (as `v2ce calibrate` writes: every `[stage1.physics]` parameter) used
+    /// instead of `preset` (empty: none). Relative paths are from the configuration file.
+    pub preset_file: std::path::PathBuf,
+    /// The parameters read from `preset_file`.
+    #[serde(skip)]
+    pub custom: Option<PhysicsConfig>,
     /// Events directly, or voxels through Stage 2.
     pub output: Stage1Output,
     /// Seed of mismatch, hot pixels and noise.
@@ -210,8 +216,40 @@ pub struct Stage1Config {
 }
 
 impl Stage1Config {
-    /// The physics parameters: the preset with the overrides applied.
+    /// The physics parameters: the preset (or the preset file's parameters) with the
+    /// overrides applied.
     pub fn physics_config(&self) -> PhysicsConfig {
-        self.physics.apply(self.preset.config())
+        let base = self.custom.clone().unwrap_or_else(|| self.preset.config());
+        self.physics.apply(base)
+    }
+
+    /// Reads `path` as a preset file (see `preset_file`) and uses it from now on.
+    pub fn load_preset_file(&mut self, path: &std::path::Path) -> Result<()> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let config: PhysicsConfig = toml::from_str(&text).map_err(|e| {
+            let at = e
+                .span()
+                .map(|s| {
+                    let line = text[..s.start.min(text.len())].matches('\n').count() + 1;
+                    format!("line {line}: ")
+                })
+                .unwrap_or_default();
+            Error::format(path, format!("{at}{}", e.message()))
+        })?;
+        config
+            .validate()
+            .map_err(|e| Error::format(path, e.to_string()))?;
+        self.preset_file = path.to_path_buf();
+        self.custom = Some(config);
+        Ok(())
+    }
+
+    /// What the physics tier's parameters come from, for logs: the preset's name or the file.
+    pub fn preset_name(&self) -> String {
+        if self.custom.is_some() {
+            format!("file {}", self.preset_file.display())
+        } else {
+            self.preset.name().to_string()
+        }
     }
 }

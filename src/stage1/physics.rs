@@ -707,7 +707,7 @@ impl super::Stage1 for PhysicsStage1 {
     fn describe(&self) -> String {
         format!(
             "physics (preset {}, {})",
-            self.config.preset.name(),
+            self.config.preset_name(),
             match self.config.output {
                 super::Stage1Output::Events => "events",
                 super::Stage1Output::Voxels => "voxels re-timed by Stage 2",
