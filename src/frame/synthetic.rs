@@ -62,6 +62,34 @@ impl SceneSource {
         SceneSource::new("moving edge", width, height, fps, frames, Box::new(scene))
     }
 
+    /// The illumination ladder's scene at `light` times its mid-light level: a texture (a sum
+    /// of gratings, contrast about 3:1) drifting right at 60 px/s, crossed by a dark bar moving
+    /// down at 40 px/s, at 30 fps. At `light = 1` the luminance spans about 2% to 6% of full
+    /// scale, so 16x brighter still fits below saturation; the scene's log contrast, and so
+    /// an ideal log sensor's events, are the same at every level.
+    pub fn ladder(width: u16, height: u16, frames: usize, light: f64) -> Self {
+        let scene = move |t: i64, x: u16, y: u16| {
+            let s = t as f64 * 1e-6;
+            let (u, v) = (x as f64 - 60.0 * s, y as f64);
+            let tau = std::f64::consts::TAU;
+            let texture = 0.5
+                + 0.22 * (tau * u / 17.0).sin()
+                + 0.15 * (tau * (u / 7.0 + v / 11.0)).sin()
+                + 0.1 * (tau * v / 23.0).cos();
+            let bar = ((v - 40.0 * s).rem_euclid(height as f64) < 6.0) as u8 as f64;
+            let level = 0.02 + 0.04 * texture.clamp(0.0, 1.0);
+            light * level * (1.0 - 0.7 * bar)
+        };
+        SceneSource::new(
+            &format!("illumination ladder x{light}"),
+            width,
+            height,
+            30.0,
+            frames,
+            Box::new(scene),
+        )
+    }
+
     /// A still scene: a fixed pattern of gray levels.
     pub fn still(width: u16, height: u16, fps: f64, frames: usize) -> Self {
         let scene = |_t: i64, x: u16, y: u16| 0.1 + 0.8 * (((x / 8 + y / 8) % 5) as f64 / 4.0);

@@ -7,10 +7,11 @@
 //! `c0 + delay + (t - t0) / speed`, where `speed` is the replay speed (1 for a camera). An event
 //! at the start of an interval can only be known when the interval closes, so `delay` must cover
 //! one frame interval (a window's `stride` intervals for the learned tier) plus the pipeline's
-//! processing time; events that come later than their due time go out at once and are counted
-//! as late, never reordered. When an event is more than [`EmitClock::REANCHOR`] late (the
-//! pipeline stalled, or a replay runs slower than real time), the clock is anchored again on it,
-//! counted, so one stall does not turn the rest of the run into a burst.
+//! processing time; events that come later than their due time are counted as late, never
+//! reordered, and catch up at twice the stream's rate (see [`super::udp`]). When an event is
+//! more than [`EmitClock::REANCHOR`] late (the pipeline stalled, or a replay runs slower than
+//! real time), the clock is anchored again on it, counted, so one stall does not turn the rest
+//! of the run into a burst.
 
 use std::time::{Duration, Instant};
 
@@ -116,7 +117,7 @@ mod tests {
         let c0 = Instant::now();
         let mut clock = EmitClock::new(Duration::from_millis(50), 1.0);
         clock.anchor(0, c0);
-        // 0.5 s late: within the limit, due time unchanged (sent at once, counted late).
+        // 0.5 s late: within the limit, due time unchanged (sent on catching up, counted late).
         let now = c0 + Duration::from_millis(550 + 10);
         assert_eq!(clock.due_at(10_000, now), clock.due(10_000));
         assert_eq!(clock.reanchors, 0);

@@ -301,6 +301,8 @@ pub struct UdpSink {
     spin: Option<Duration>,
     /// The due time the sending thread last woke for (emission at event time).
     woke: Option<Instant>,
+    /// The last datagram's due time and when it left (emission at event time).
+    previous: Option<(Instant, Instant)>,
     stats: SinkStats,
 }
 
@@ -371,6 +373,7 @@ impl UdpSink {
             clock,
             spin: None,
             woke: None,
+            previous: None,
             config,
             socket,
             target,
@@ -493,7 +496,20 @@ impl Sink for UdpSink {
                 wait_until(wake, spin);
                 self.woke = Some(wake);
             }
+            // Catching up: a datagram more than a millisecond late leaves no sooner after the
+            // previous one than half the time between their due times, so a stall is replayed
+            // at twice the stream's own rate instead of in one burst that overflows receivers.
+            let now = Instant::now();
+            if now > last_due + Duration::from_millis(1) {
+                if let Some((prev_due, prev_sent)) = self.previous {
+                    let earliest = prev_sent + last_due.saturating_duration_since(prev_due) / 2;
+                    if earliest > now {
+                        wait_until(earliest, spin);
+                    }
+                }
+            }
             let sent_at = Instant::now();
+            self.previous = Some((last_due, sent_at));
             self.stats.reanchors = reanchors;
             // Late: sent more than a slice (and a millisecond of scheduling) after its time.
             if sent_at > first_due + slice + Duration::from_millis(1) {
@@ -659,13 +675,19 @@ mod tests {
     }
 
     #[test]
-    fn late_events_go_at_once_counted_and_a_stall_reanchors() {
+    fn late_events_catch_up_at_twice_the_rate_counted_and_a_stall_reanchors() {
         let events: Vec<Event> = (0..200).map(|i| Event::new(i * 100, 1, 2, true)).collect();
-        // Due 0.48 s ago and before: all late, sent at once, in order.
+        // Due 0.48 s ago and before: all late, sent in order at twice their own rate (their
+        // due times span 19.9 ms), not in one burst.
         let past = Instant::now() - Duration::from_millis(500);
         let (got, stats) = emit_at_event_time(&events, past, Duration::from_millis(20));
         assert_eq!(stats.events_late, 200);
         assert_eq!(stats.reanchors, 0);
+        let span = got[got.len() - 1].0 - got[0].0;
+        assert!(
+            span >= Duration::from_millis(7) && span < Duration::from_millis(19),
+            "{span:?} for 19.9 ms of events"
+        );
         let all: Vec<Event> = got.into_iter().flat_map(|(_, e)| e).collect();
         assert_eq!(all, events);
         // Due 5 s ago: the clock starts over on the first event, so the rest are on time again.
