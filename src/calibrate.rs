@@ -157,6 +157,23 @@ pub fn calibrate(rec: &Recording, base: &PhysicsConfig, seed: u64) -> Result<Cal
     })
 }
 
+/// The physics tier's events for `frames` (in time order) with `cfg` and `seed`, sorted by
+/// time: what `v2ce convert` writes in events mode for the same frames.
+pub fn simulate<'f>(
+    frames: impl IntoIterator<Item = &'f Frame>,
+    size: (u16, u16),
+    cfg: &PhysicsConfig,
+    seed: u64,
+) -> Result<Vec<Event>> {
+    let mut sim = PhysicsSim::new(cfg.clone(), size.0, size.1, seed)?;
+    let mut events = Vec::new();
+    for f in frames {
+        sim.step(f, &mut events)?;
+    }
+    sort_events(&mut events);
+    Ok(events)
+}
+
 struct Fitter<'a> {
     rec: &'a Recording<'a>,
     intervals: &'a [Interval],
@@ -172,14 +189,12 @@ impl Fitter<'_> {
         range: std::ops::Range<usize>,
     ) -> Result<Vec<Event>> {
         self.runs += 1;
-        let (w, h) = self.rec.size;
-        let mut sim = PhysicsSim::new(cfg.clone(), w, h, self.seed)?;
-        let mut events = Vec::new();
-        for f in &self.rec.frames[range.start..=range.end] {
-            sim.step(f, &mut events)?;
-        }
-        sort_events(&mut events);
-        Ok(events)
+        simulate(
+            &self.rec.frames[range.start..=range.end],
+            self.rec.size,
+            cfg,
+            self.seed,
+        )
     }
 
     fn metrics(

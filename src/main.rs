@@ -539,15 +539,25 @@ struct Stage1Args {
     /// The real events (and, for an .aedat4 with APS frames, the frame intervals).
     #[arg(long)]
     real: PathBuf,
-    /// The simulated events.
+    /// The simulated events; without it, the physics tier simulates them here from the
+    /// recording's APS frames (or the --frames images) with --preset / --preset-file.
     #[arg(long)]
-    sim: PathBuf,
+    sim: Option<PathBuf>,
     /// Frame times (an .aedat4 with APS frames or an IJRR images.txt) when --real has none.
     #[arg(long, conflicts_with = "fps")]
     frames: Option<PathBuf>,
     /// Fixed frame rate for the intervals instead.
     #[arg(long)]
     fps: Option<f64>,
+    /// Without --sim: the sensor preset to simulate with (davis346, dvxplorer, ideal).
+    #[arg(long, default_value = "davis346", conflicts_with = "sim")]
+    preset: String,
+    /// Without --sim: a preset file (as `v2ce calibrate` writes) instead of --preset.
+    #[arg(long, conflicts_with = "sim")]
+    preset_file: Option<PathBuf>,
+    /// Without --sim: the seed of mismatch and noise.
+    #[arg(long, default_value_t = 0, conflicts_with = "sim")]
+    seed: u64,
     /// Print the scores as one JSON object.
     #[arg(long)]
     json: bool,
@@ -1176,7 +1186,14 @@ fn model_run(args: ModelRunArgs) -> Result<()> {
 fn eval_stage1(args: Stage1Args) -> Result<()> {
     let (real, intervals) =
         load_events_and_intervals(&args.real, args.frames.as_deref(), args.fps)?;
-    let sim = format::read_events(&args.sim)?;
+    let sim = match &args.sim {
+        Some(path) => format::read_events(path)?,
+        None => simulate_for_eval(&args, (real.width, real.height))?,
+    };
+    let sim_name = args
+        .sim
+        .clone()
+        .unwrap_or_else(|| PathBuf::from("the simulated events"));
     if let Some(e) = sim
         .events
         .events()
@@ -1184,7 +1201,7 @@ fn eval_stage1(args: Stage1Args) -> Result<()> {
         .find(|e| e.x >= real.width || e.y >= real.height)
     {
         return Err(Error::format(
-            &args.sim,
+            &sim_name,
             format!(
                 "event at ({}, {}) outside the real {} x {} sensor",
                 e.x, e.y, real.width, real.height
@@ -1372,6 +1389,45 @@ fn load_stage2_input(args: &Stage2Args) -> Result<(Recording, Vec<Interval>)> {
 /// Reads real events and their frame intervals: from `frames` (an .aedat4 with APS frames or
 /// IJRR images.txt), from a fixed `fps` starting at the first event, or, when neither is given,
 /// from the APS frames of an .aedat4 event file (decoded once with its events).
+/// `eval stage1` without `--sim`: the physics tier's events for the recording's own frames
+/// (its APS frames, or `--frames` when that is a frame source) with the chosen preset.
+fn simulate_for_eval(args: &Stage1Args, size: (u16, u16)) -> Result<Recording> {
+    let mut stage1 = v2ce::stage1::Stage1Config::default();
+    match &args.preset_file {
+        Some(f) => stage1.load_preset_file(f)?,
+        None => stage1.preset = v2ce::stage1::Preset::from_name(&args.preset)?,
+    }
+    let path = match &args.frames {
+        Some(f) if !is_aedat4(f) => f.clone(),
+        _ => args.real.clone(),
+    };
+    let mut source = v2ce::frame::open(&path, &Default::default())?;
+    if source.size() != size {
+        return Err(Error::invalid(
+            "eval stage1",
+            format!(
+                "frames of {} x {} for a {} x {} recording",
+                source.size().0,
+                source.size().1,
+                size.0,
+                size.1
+            ),
+        ));
+    }
+    let mut frames = Vec::new();
+    while let Some(f) = source.next_frame()? {
+        frames.push(f);
+    }
+    eprintln!(
+        "v2ce: simulating {} frames of {} with the physics tier (preset {})",
+        frames.len(),
+        path.display(),
+        stage1.preset_name()
+    );
+    let events = v2ce::calibrate::simulate(&frames, size, &stage1.physics_config(), args.seed)?;
+    Ok(Recording::new(events, Some(size)))
+}
+
 fn load_events_and_intervals(
     events_path: &Path,
     frames: Option<&Path>,

@@ -261,6 +261,18 @@ fn calibrate_fits_davis346_and_its_preset_file_converts() {
         scores["tf1"]
     );
     assert!((0.9..=1.1).contains(&ratio), "{scores}");
+    // `eval stage1` simulates by itself when given no --sim: the same scores.
+    let o = run(&[
+        "eval".as_ref(),
+        "stage1".as_ref(),
+        "--real".as_ref(),
+        rec.as_os_str(),
+        "--preset-file".as_ref(),
+        preset.as_os_str(),
+        "--json".as_ref(),
+    ]);
+    let direct: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(direct, scores);
     std::fs::remove_dir_all(&out).unwrap();
 }
 
