@@ -274,3 +274,66 @@ fn ffmpeg_source_uses_presentation_timestamps() {
     assert!(v2ce::frame::open(&dir.join("bad.mkv"), &Default::default()).is_err());
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// The illumination ladder (README): with scene-relative light (`scene_level`), the davis346
+/// preset's event count stays within 20% of its mid-light count from 1/64 to 4 times the light
+/// (a log pixel above its bandwidth limit sees only contrast), and within 0.5-2x up to 16x,
+/// where the brightest parts of the scene saturate; without it the count collapses below
+/// mid-light (the frame-relative model this switch replaces).
+#[test]
+fn scene_relative_light_holds_the_count_on_the_illumination_ladder() {
+    let count = |cfg: &PhysicsConfig, light: f64| {
+        let mut src = SceneSource::ladder(96, 64, 40, light);
+        run(cfg.clone(), &mut src, 1).0.len() as f64
+    };
+    let relative = Preset::Davis346.config();
+    assert!(
+        relative.scene_level > 0.0,
+        "the default preset is scene-relative"
+    );
+    let mid = count(&relative, 1.0);
+    assert!(mid > 1000.0, "{mid}");
+    for light in [1.0 / 64.0, 1.0 / 16.0, 0.25, 4.0] {
+        let r = count(&relative, light) / mid;
+        eprintln!("scene-relative x{light}: {r:.3}");
+        assert!((0.8..=1.2).contains(&r), "x{light}: {r}");
+    }
+    for light in [8.0, 16.0] {
+        let r = count(&relative, light) / mid;
+        eprintln!("scene-relative x{light}: {r:.3}");
+        assert!((0.5..=2.0).contains(&r), "x{light}: {r}");
+    }
+    let mut absolute = Preset::Davis346.config();
+    absolute.scene_level = 0.0;
+    let r = count(&absolute, 0.25) / count(&absolute, 1.0).max(1.0);
+    assert!(r < 0.5, "the frame-relative model held at 1/4 light: {r}");
+}
+
+/// A scene that fades in from black takes its level from its first frame with content, not
+/// from the black ones (which would make its dark noise fire): the same events, give or take
+/// the interval where the level is set, as the scene without the black lead-in.
+#[test]
+fn a_black_lead_in_does_not_set_the_scene_level() {
+    let cfg = Preset::Davis346.config();
+    let scene: Vec<Frame> = {
+        let mut src = SceneSource::ladder(96, 64, 30, 1.0);
+        std::iter::from_fn(|| src.next_frame().unwrap()).collect()
+    };
+    let go = |lead: usize| {
+        let mut sim = PhysicsSim::new(cfg.clone(), 96, 64, 1).unwrap();
+        let mut events = Vec::new();
+        for k in 0..lead {
+            sim.step(&Frame::filled(k as i64 * 1000, 96, 64, 0), &mut events)
+                .unwrap();
+        }
+        for f in &scene {
+            let mut f = f.clone();
+            f.t += lead as i64 * 1000 + 1_000_000;
+            sim.step(&f, &mut events).unwrap();
+        }
+        events.len() as f64
+    };
+    let (plain, faded) = (go(0), go(3));
+    assert!(plain > 1000.0, "{plain}");
+    assert!((faded / plain - 1.0).abs() < 0.1, "{faded} vs {plain}");
+}

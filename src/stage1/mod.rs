@@ -164,6 +164,7 @@ pub struct PhysicsOverrides {
     pub hot_pixel_hz: Option<f64>,
     pub max_substeps: Option<u32>,
     pub tile: Option<u16>,
+    pub scene_level: Option<f64>,
 }
 
 impl PhysicsOverrides {
@@ -185,7 +186,8 @@ impl PhysicsOverrides {
             hot_pixel_fraction,
             hot_pixel_hz,
             max_substeps,
-            tile
+            tile,
+            scene_level
         );
         base
     }

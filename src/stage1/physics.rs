@@ -23,6 +23,12 @@
 //!    thinned by `1 / (1 + I / I_half)` with `I_half = 0.05`), and hot pixels (a fixed set of
 //!    `hot_pixel_fraction` pixels firing at `hot_pixel_hz`).
 //!
+//! **Light relative to the scene.** With `scene_level` set (the presets' default), the light
+//! parameters above (`I_d`, `I_k`, the bandwidth curve, `I_half`) hold for a scene whose mean
+//! luminance is `scene_level` and scale with each scene's own mean, taken from its first frame
+//! that is not nearly black: only contrast matters, as for a log pixel above its bandwidth
+//! limit, so the same motion gives the same events at any exposure (the illumination ladder).
+//!
 //! **Work follows scene activity.** The frame is cut into tiles; a tile whose pixels are
 //! identical to the previous frame and whose pixels have settled (filter at its input, nothing
 //! pending) is skipped after a comparison of its rows, so a static scene costs little more than
@@ -70,6 +76,13 @@ pub struct PhysicsConfig {
     pub max_substeps: u32,
     /// Side of the activity-gating tiles, pixels.
     pub tile: u16,
+    /// Scene-relative light (0: off, the parameters above are fractions of the frame's full
+    /// scale). Otherwise the mean luminance (fraction of full scale) of the scene the light
+    /// parameters were calibrated on: a scene whose first frame is `g` times brighter or darker
+    /// on average has its dark current, lin-log knee, photoreceptor bandwidth curve and
+    /// shot-noise half-light scaled by `g`, so only its contrast matters, as for a log pixel
+    /// above its bandwidth limit (the illumination ladder, README).
+    pub scene_level: f64,
 }
 
 impl Default for PhysicsConfig {
@@ -134,6 +147,9 @@ impl Preset {
                 hot_pixel_hz: 2.0,
                 max_substeps: 32,
                 tile: 16,
+                // The davis346 clip's first APS frame: mean linear luminance 0.303 of full
+                // scale, where the light parameters above were calibrated.
+                scene_level: 0.303,
             },
             Preset::Dvxplorer => PhysicsConfig {
                 threshold_on: 0.25,
@@ -149,6 +165,9 @@ impl Preset {
                 hot_pixel_hz: 2.0,
                 max_substeps: 32,
                 tile: 16,
+                // The davis346 clip's first APS frame: mean linear luminance 0.303 of full
+                // scale, where the light parameters above were calibrated.
+                scene_level: 0.303,
             },
             Preset::Ideal => PhysicsConfig {
                 threshold_on: 0.2,
@@ -164,6 +183,7 @@ impl Preset {
                 hot_pixel_hz: 0.0,
                 max_substeps: 64,
                 tile: 16,
+                scene_level: 0.0,
             },
         }
     }
@@ -194,6 +214,12 @@ impl PhysicsConfig {
             if !(v.is_finite() && (0.01..=5.0).contains(&v)) {
                 return bad(format!("{name} = {v} must be in [0.01, 5] log units"));
             }
+        }
+        if !(self.scene_level.is_finite() && (0.0..=1.0).contains(&self.scene_level)) {
+            return bad(format!(
+                "scene_level = {} must be in [0, 1] (0: off)",
+                self.scene_level
+            ));
         }
         if !(self.linlog_knee > 0.0 && self.linlog_knee <= 1.0) {
             return bad(format!(
@@ -262,12 +288,53 @@ pub struct PhysicsSim {
     /// Per tile: every pixel is at rest (filter settled, nothing pending).
     settled: Vec<bool>,
     hot: Vec<u32>,
+    /// The scene's light relative to the calibration scene's (1 unless `scene_level` is set).
+    light_scale: f64,
+    /// `light_scale` has been set from the scene.
+    referenced: bool,
     stats: PhysicsStats,
 }
 
-fn log_response(i: f64, cfg: &PhysicsConfig) -> f64 {
-    let x = i + cfg.dark_current;
-    let k = cfg.linlog_knee;
+/// A frame sets the scene's level when its mean is at least this many of its source's
+/// quantization steps.
+const MIN_STEPS: f64 = 8.0;
+
+/// The source's quantization step, as seen in a frame: the smallest difference between two
+/// levels present in it (257 for 8-bit linear values, 1 for 16-bit ones); `u16::MAX` for a flat
+/// frame.
+fn quantization_step(luma: &[u16]) -> u16 {
+    let mut present = vec![false; FULL_SCALE as usize + 1];
+    for &v in luma {
+        present[v as usize] = true;
+    }
+    let mut step = u16::MAX;
+    let mut last: Option<usize> = None;
+    for (v, &p) in present.iter().enumerate() {
+        if p {
+            if let Some(l) = last {
+                step = step.min((v - l) as u16);
+            }
+            last = Some(v);
+        }
+    }
+    step
+}
+
+/// The filter-table row of luminance `v` (`inv_g`: 1 over the scene's light scale): 256 rows
+/// over the calibration scene's full range.
+fn filter_index(v: u16, inv_g: f32) -> usize {
+    if inv_g == 1.0 {
+        (v >> 8) as usize
+    } else {
+        ((v as f32 * inv_g) as u32 >> 8).min(255) as usize
+    }
+}
+
+/// The log front end at luminance `i` (fraction of full scale), its light parameters scaled by
+/// `g` (see [`PhysicsConfig::scene_level`]).
+fn log_response(i: f64, cfg: &PhysicsConfig, g: f64) -> f64 {
+    let x = i + cfg.dark_current * g;
+    let k = cfg.linlog_knee * g;
     if x >= k {
         x.ln()
     } else {
@@ -284,7 +351,7 @@ impl PhysicsSim {
         }
         let n = width as usize * height as usize;
         let log_lut = (0..=FULL_SCALE as u32)
-            .map(|v| log_response(v as f64 / FULL_SCALE as f64, &cfg) as f32)
+            .map(|v| log_response(v as f64 / FULL_SCALE as f64, &cfg, 1.0) as f32)
             .collect();
         let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed ^ 0x005E_ED0F_71C5);
         let mut draw = |mean: f64| -> Vec<f32> {
@@ -319,6 +386,8 @@ impl PhysicsSim {
             settled: vec![false; tiles],
             hot,
             cfg,
+            light_scale: 1.0,
+            referenced: false,
             stats: PhysicsStats::default(),
         })
     }
@@ -344,6 +413,24 @@ impl PhysicsSim {
                     self.height
                 ),
             ));
+        }
+        if self.cfg.scene_level > 0.0 && !self.referenced {
+            // The scene's level comes from its first frame that is not nearly black: a mean of
+            // at least `MIN_STEPS` of the source's quantization steps (a video that fades in
+            // from black would otherwise set the dark current and knee so low that its dark
+            // noise fires). Until then the preset's own values hold, and the pixels start over
+            // from the frame that sets it.
+            let mean = frame.luma.iter().map(|&v| v as f64).sum::<f64>() / n as f64;
+            let g = mean / (self.cfg.scene_level * FULL_SCALE as f64);
+            if mean >= MIN_STEPS * quantization_step(&frame.luma) as f64 {
+                self.referenced = true;
+                self.light_scale = g.clamp(1e-4, 1e4);
+                let (cfg, g) = (&self.cfg, self.light_scale);
+                self.log_lut = (0..=FULL_SCALE as u32)
+                    .map(|v| log_response(v as f64 / FULL_SCALE as f64, cfg, g) as f32)
+                    .collect();
+                self.prev_t = None;
+            }
         }
         let Some(t0) = self.prev_t else {
             for (i, &v) in frame.luma.iter().enumerate() {
@@ -399,8 +486,8 @@ impl PhysicsSim {
         Ok(())
     }
 
-    /// Time constant (us) and decay over `dt` for each of 256 light levels: `(tau, e^(-dt/tau))`,
-    /// `tau = 0` for an instant pixel.
+    /// Time constant (us) and decay over `dt` for each of 256 light levels, relative to the
+    /// scene's (see [`filter_index`]): `(tau, e^(-dt/tau))`, `tau = 0` for an instant pixel.
     fn filter_table(&self, dt: f64) -> Vec<(f32, f32)> {
         let cfg = &self.cfg;
         (0..256)
@@ -429,6 +516,7 @@ impl PhysicsSim {
         out: &mut Vec<Event>,
     ) -> bool {
         let inv_dt = 1.0 / (t1 - t0) as f32;
+        let inv_g = (1.0 / self.light_scale) as f32;
         let mut settled = true;
         let mut slow: [usize; 64] = [0; 64];
         let mut n_slow = 0;
@@ -444,7 +532,7 @@ impl PhysicsSim {
             let l1 = self.log_lut[v as usize];
             let l0 = l_in[j];
             let y0 = l_p[j];
-            let (tau, decay) = filter[(v >> 8) as usize];
+            let (tau, decay) = filter[filter_index(v, inv_g)];
             let y1 = if tau > 0.0 {
                 let rt = (l1 - l0) * inv_dt * tau;
                 l1 - rt + (y0 - l0 + rt) * decay
@@ -483,7 +571,7 @@ impl PhysicsSim {
     ) {
         let l1 = self.log_lut[v as usize] as f64;
         let l0 = self.l_in[i] as f64;
-        let tau = filter[(v >> 8) as usize].0 as f64;
+        let tau = filter[filter_index(v, (1.0 / self.light_scale) as f32)].0 as f64;
         self.crossings(i, l0, l1, t0, t1, tau, out);
     }
 
@@ -563,6 +651,7 @@ impl PhysicsSim {
 
     /// Sparse noise events in `(t0, frame.t]`.
     fn noise(&mut self, t0: i64, frame: &Frame, out: &mut Vec<Event>) {
+        let light_scale = self.light_scale;
         let cfg = &self.cfg;
         let dt_s = (frame.t - t0) as f64 * 1e-6;
         let n = self.width as usize * self.height as usize;
@@ -592,7 +681,7 @@ impl PhysicsSim {
         for _ in 0..count(cfg.shot_noise_hz * n as f64, &mut rng) {
             let i = rng.gen_range(0..n);
             let intensity = frame.luma[i] as f64 / FULL_SCALE as f64;
-            if rng.gen::<f64>() < 1.0 / (1.0 + intensity / 0.05) {
+            if rng.gen::<f64>() < 1.0 / (1.0 + intensity / (0.05 * light_scale)) {
                 let on = rng.gen::<bool>();
                 emit(i, on, &mut rng, &mut self.last_event);
             }
