@@ -179,6 +179,9 @@ fn wait_until(due: Instant, spin: Duration) {
     }
 }
 
+/// Late datagrams catch up at this many times the stream's own rate.
+const CATCH_UP_RATE: u32 = 4;
+
 /// How long a sender at normal priority spins before each due time.
 const SPIN: Duration = Duration::from_micros(100);
 
@@ -301,8 +304,10 @@ pub struct UdpSink {
     spin: Option<Duration>,
     /// The due time the sending thread last woke for (emission at event time).
     woke: Option<Instant>,
-    /// The last datagram's due time and when it left (emission at event time).
-    previous: Option<(Instant, Instant)>,
+    /// The last datagram's due time (emission at event time).
+    previous_due: Option<Instant>,
+    /// The pacing clock of late datagrams catching up.
+    catchup: Option<Instant>,
     stats: SinkStats,
 }
 
@@ -373,7 +378,8 @@ impl UdpSink {
             clock,
             spin: None,
             woke: None,
-            previous: None,
+            previous_due: None,
+            catchup: None,
             config,
             socket,
             target,
@@ -496,20 +502,29 @@ impl Sink for UdpSink {
                 wait_until(wake, spin);
                 self.woke = Some(wake);
             }
-            // Catching up: a datagram more than a millisecond late leaves no sooner after the
-            // previous one than half the time between their due times, so a stall is replayed
-            // at twice the stream's own rate instead of in one burst that overflows receivers.
+            // Catching up: datagrams more than a millisecond late follow a pacing clock that
+            // advances by a quarter of the time between their due times, so a stall is replayed
+            // at four times the stream's own rate instead of in one burst that overflows
+            // receivers. The
+            // thread waits only when the clock is a wake grace ahead (a sleep per datagram
+            // would cost more than the datagrams' spacing and never catch up), and the clock
+            // never lags now by more than a grace (no burst allowance builds up).
             let now = Instant::now();
             if now > last_due + Duration::from_millis(1) {
-                if let Some((prev_due, prev_sent)) = self.previous {
-                    let earliest = prev_sent + last_due.saturating_duration_since(prev_due) / 2;
-                    if earliest > now {
-                        wait_until(earliest, spin);
-                    }
+                let gap = self
+                    .previous_due
+                    .map_or(Duration::ZERO, |p| last_due.saturating_duration_since(p));
+                let floor = now.checked_sub(WAKE_GRACE).unwrap_or(now);
+                let pace = self.catchup.map_or(now, |p| p.max(floor)) + gap / CATCH_UP_RATE;
+                if pace > now + WAKE_GRACE {
+                    wait_until(pace, spin);
                 }
+                self.catchup = Some(pace);
+            } else {
+                self.catchup = None;
             }
+            self.previous_due = Some(last_due);
             let sent_at = Instant::now();
-            self.previous = Some((last_due, sent_at));
             self.stats.reanchors = reanchors;
             // Late: sent more than a slice (and a millisecond of scheduling) after its time.
             if sent_at > first_due + slice + Duration::from_millis(1) {
@@ -675,17 +690,17 @@ mod tests {
     }
 
     #[test]
-    fn late_events_catch_up_at_twice_the_rate_counted_and_a_stall_reanchors() {
+    fn late_events_catch_up_at_four_times_the_rate_counted_and_a_stall_reanchors() {
         let events: Vec<Event> = (0..200).map(|i| Event::new(i * 100, 1, 2, true)).collect();
-        // Due 0.48 s ago and before: all late, sent in order at twice their own rate (their
-        // due times span 19.9 ms), not in one burst.
+        // Due 0.48 s ago and before: all late, sent in order at four times their own rate
+        // (their due times span 19.9 ms: about 5 ms), not in one burst.
         let past = Instant::now() - Duration::from_millis(500);
         let (got, stats) = emit_at_event_time(&events, past, Duration::from_millis(20));
         assert_eq!(stats.events_late, 200);
         assert_eq!(stats.reanchors, 0);
         let span = got[got.len() - 1].0 - got[0].0;
         assert!(
-            span >= Duration::from_millis(7) && span < Duration::from_millis(19),
+            span >= Duration::from_millis(3) && span < Duration::from_millis(12),
             "{span:?} for 19.9 ms of events"
         );
         let all: Vec<Event> = got.into_iter().flat_map(|(_, e)| e).collect();
