@@ -197,6 +197,21 @@ impl RunConfig {
     }
 }
 
+/// Parses a TOML document into `T`; an error names `origin` and the line (unknown keys
+/// included, where `T` denies them).
+pub fn parse_toml<T: serde::de::DeserializeOwned>(text: &str, origin: &Path) -> Result<T> {
+    toml::from_str(text).map_err(|e| {
+        let at = e
+            .span()
+            .map(|s| {
+                let line = text[..s.start.min(text.len())].matches('\n').count() + 1;
+                format!("line {line}: ")
+            })
+            .unwrap_or_default();
+        Error::format(origin, format!("{at}{}", e.message()))
+    })
+}
+
 /// Parses `WIDTHxHEIGHT` (each 1..=65535).
 pub fn parse_size(text: &str) -> Result<(u16, u16)> {
     let parsed = text
@@ -264,16 +279,7 @@ impl Config {
 
     /// Parses a TOML document; `origin` names it in errors.
     pub fn parse(text: &str, origin: &Path) -> Result<Self> {
-        let mut config: Config = toml::from_str(text).map_err(|e| {
-            let at = e
-                .span()
-                .map(|s| {
-                    let line = text[..s.start.min(text.len())].matches('\n').count() + 1;
-                    format!("line {line}: ")
-                })
-                .unwrap_or_default();
-            Error::format(origin, format!("{at}{}", e.message()))
-        })?;
+        let mut config: Config = parse_toml(text, origin)?;
         if !config.stage1.preset_file.as_os_str().is_empty() {
             let file = origin
                 .parent()

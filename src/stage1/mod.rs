@@ -228,16 +228,7 @@ impl Stage1Config {
     /// Reads `path` as a preset file (see `preset_file`) and uses it from now on.
     pub fn load_preset_file(&mut self, path: &std::path::Path) -> Result<()> {
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-        let config: PhysicsConfig = toml::from_str(&text).map_err(|e| {
-            let at = e
-                .span()
-                .map(|s| {
-                    let line = text[..s.start.min(text.len())].matches('\n').count() + 1;
-                    format!("line {line}: ")
-                })
-                .unwrap_or_default();
-            Error::format(path, format!("{at}{}", e.message()))
-        })?;
+        let config: PhysicsConfig = crate::config::parse_toml(&text, path)?;
         config
             .validate()
             .map_err(|e| Error::format(path, e.to_string()))?;
