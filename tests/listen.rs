@@ -359,11 +359,14 @@ fn listen_gets_every_event_of_the_default_daemon_at_both_sizes() {
                 "{size}: {}",
                 sent_events.len()
             );
+            let daemon: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
             assert_eq!(
                 report["events"].as_u64(),
                 Some(sent_events.len() as u64),
-                "{size} {format}: listen lost events (realtime receiver: {})",
-                report["realtime"]
+                "{size} {format}: listen lost events (realtime receiver: {}); daemon's sink: {}, latency {}",
+                report["realtime"],
+                daemon["stats"]["sinks"][0]["stats"],
+                daemon["stats"]["latency"]
             );
             assert_eq!(report["ragged"], 0);
             if full_times {

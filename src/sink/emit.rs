@@ -8,7 +8,7 @@
 //! at the start of an interval can only be known when the interval closes, so `delay` must cover
 //! one frame interval (a window's `stride` intervals for the learned tier) plus the pipeline's
 //! processing time; events that come later than their due time are counted as late, never
-//! reordered, and catch up at four times the stream's rate (see [`super::udp`]). When an event is
+//! reordered, and catch up at twice the stream's rate (see [`super::udp`]). When an event is
 //! more than [`EmitClock::REANCHOR`] late (the pipeline stalled, or a replay runs slower than
 //! real time), the clock is anchored again on it, counted, so one stall does not turn the rest
 //! of the run into a burst.

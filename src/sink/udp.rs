@@ -180,7 +180,7 @@ fn wait_until(due: Instant, spin: Duration) {
 }
 
 /// Late datagrams catch up at this many times the stream's own rate.
-const CATCH_UP_RATE: u32 = 4;
+const CATCH_UP_RATE: u32 = 2;
 
 /// How long a sender at normal priority spins before each due time.
 const SPIN: Duration = Duration::from_micros(100);
@@ -503,9 +503,9 @@ impl Sink for UdpSink {
                 self.woke = Some(wake);
             }
             // Catching up: datagrams more than a millisecond late follow a pacing clock that
-            // advances by a quarter of the time between their due times, so a stall is replayed
-            // at four times the stream's own rate instead of in one burst that overflows
-            // receivers. The
+            // advances by 1 / CATCH_UP_RATE of the time between their due times, so a stall is
+            // replayed at that multiple of the stream's own rate instead of in one burst that
+            // overflows receivers. The
             // thread waits only when the clock is a wake grace ahead (a sleep per datagram
             // would cost more than the datagrams' spacing and never catch up), and the clock
             // never lags now by more than a grace (no burst allowance builds up).
@@ -690,17 +690,17 @@ mod tests {
     }
 
     #[test]
-    fn late_events_catch_up_at_four_times_the_rate_counted_and_a_stall_reanchors() {
+    fn late_events_catch_up_at_twice_the_rate_counted_and_a_stall_reanchors() {
         let events: Vec<Event> = (0..200).map(|i| Event::new(i * 100, 1, 2, true)).collect();
-        // Due 0.48 s ago and before: all late, sent in order at four times their own rate
-        // (their due times span 19.9 ms: about 5 ms), not in one burst.
+        // Due 0.48 s ago and before: all late, sent in order at twice their own rate (their due
+        // times span 19.9 ms: about 10 ms), not in one burst.
         let past = Instant::now() - Duration::from_millis(500);
         let (got, stats) = emit_at_event_time(&events, past, Duration::from_millis(20));
         assert_eq!(stats.events_late, 200);
         assert_eq!(stats.reanchors, 0);
         let span = got[got.len() - 1].0 - got[0].0;
         assert!(
-            span >= Duration::from_millis(3) && span < Duration::from_millis(12),
+            span >= Duration::from_millis(6) && span < Duration::from_millis(19),
             "{span:?} for 19.9 ms of events"
         );
         let all: Vec<Event> = got.into_iter().flat_map(|(_, e)| e).collect();
