@@ -113,6 +113,7 @@ fn ours(w: &Workload) -> (f64, usize) {
             width: w.width,
             height: w.height,
             luma: p.iter().map(|&v| v as u16 * 257).collect(),
+            exposure_us: None,
         })
         .collect();
     let mut rates = Vec::new();

@@ -146,7 +146,12 @@ pub fn calibrate(rec: &Recording, base: &PhysicsConfig, seed: u64) -> Result<Cal
         });
     }
     let all = 0..intervals.len();
-    let config = fitter.fit(base, all.clone())?;
+    let mut config = fitter.fit(base, all.clone())?;
+    // The recording's exposure, as `light = "exposure"` needs it to read this camera's other
+    // recordings in absolute light.
+    if let Some(e) = crate::stage1::physics::reference_exposure(&config, rec.frames) {
+        config.exposure_us = e;
+    }
     let whole = fitter.score(&config, all)?;
     Ok(Calibration {
         config,

@@ -596,6 +596,8 @@ struct Stage2Args {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    // Every command logs its warnings (a guessed colour space, frames without exposure).
+    init_logging();
     let result = match cli.command {
         Command::Eval(Eval::Stage2(args)) => eval_stage2(args),
         Command::Eval(Eval::Stage1(args)) => eval_stage1(args),
@@ -720,7 +722,6 @@ fn run_config(args: &RunArgs) -> Result<Config> {
 }
 
 fn run(args: RunArgs) -> Result<()> {
-    init_logging();
     let config = run_config(&args)?;
     let stop = v2ce::daemon::stop_on_signals()?;
     let report = v2ce::daemon::run(&config, &stop)?;
@@ -748,7 +749,6 @@ fn devices() -> Result<()> {
 }
 
 fn bench(args: BenchArgs) -> Result<()> {
-    init_logging();
     let stop = v2ce::daemon::stop_on_signals()?;
     let mut config = match &args.config {
         Some(path) => Config::load(path)?,
@@ -779,7 +779,6 @@ fn bench(args: BenchArgs) -> Result<()> {
 
 fn convert(args: ConvertArgs) -> Result<()> {
     use std::io::IsTerminal;
-    init_logging();
     use v2ce::stage1::{Preset, Stage1Output};
     let mut config = match &args.config {
         Some(path) => Config::load(path)?,

@@ -4,7 +4,7 @@
 use v2ce::event::Event;
 use v2ce::frame::synthetic::SceneSource;
 use v2ce::frame::{Frame, FrameSource};
-use v2ce::stage1::{PhysicsConfig, PhysicsSim, Preset};
+use v2ce::stage1::{LightModel, PhysicsConfig, PhysicsSim, Preset};
 
 fn run(cfg: PhysicsConfig, source: &mut dyn FrameSource, seed: u64) -> (Vec<Event>, PhysicsSim) {
     let (w, h) = source.size();
@@ -336,4 +336,87 @@ fn a_black_lead_in_does_not_set_the_scene_level() {
     let (plain, faded) = (go(0), go(3));
     assert!(plain > 1000.0, "{plain}");
     assert!((faded / plain - 1.0).abs() < 0.1, "{faded} vs {plain}");
+}
+
+/// The ladder's frames at a fixed exposure, as an APS would give them.
+fn ladder_frames(light: f64, frames: usize, exposure_us: u32) -> Vec<Frame> {
+    let mut src = SceneSource::ladder(96, 64, frames, light).with_exposure(exposure_us);
+    std::iter::from_fn(|| src.next_frame().unwrap()).collect()
+}
+
+fn count_frames(cfg: &PhysicsConfig, frames: &[Frame]) -> f64 {
+    v2ce::calibrate::simulate(frames, (96, 64), cfg, 1)
+        .unwrap()
+        .len() as f64
+}
+
+/// Under `light = "exposure"` the photocurrent is absolute: at a fixed exposure, 1/4 of the
+/// light keeps the count within 20% (the cutoff at the scene's mean, 19 Hz, is still above its
+/// 3.5 and 8.6 Hz), then the count falls as the cutoff reaches the scene's frequencies (1/16,
+/// 1/64), never rising; brighter than mid-light it stays within 20%. The same frames with
+/// the exposure halved and the light doubled (the same values) give the same events as
+/// mid-light would at the halved exposure's light: twice the photocurrent, not the same.
+#[test]
+fn absolute_light_follows_the_photoreceptor_bandwidth() {
+    let mut cfg = Preset::Davis346.config();
+    cfg.light = LightModel::Exposure;
+    let mid_frames = ladder_frames(1.0, 40, 1000);
+    cfg.exposure_us = v2ce::stage1::physics::reference_exposure(&cfg, &mid_frames).unwrap();
+    let mid = count_frames(&cfg, &mid_frames);
+    assert!(mid > 1000.0, "{mid}");
+    let ratio = |light: f64| count_frames(&cfg, &ladder_frames(light, 40, 1000)) / mid;
+    let (quarter, sixteenth, dark) = (ratio(0.25), ratio(1.0 / 16.0), ratio(1.0 / 64.0));
+    eprintln!("exposure model: x1/4 {quarter:.3}, x1/16 {sixteenth:.3}, x1/64 {dark:.3}");
+    assert!((0.8..=1.2).contains(&quarter), "x1/4: {quarter}");
+    assert!(
+        sixteenth < quarter && dark < sixteenth,
+        "{quarter} {sixteenth} {dark}"
+    );
+    assert!(
+        dark < 0.8,
+        "the count did not fall at 1/64 of the light: {dark}"
+    );
+    for light in [4.0, 16.0] {
+        let r = ratio(light);
+        assert!((0.8..=1.2).contains(&r), "x{light}: {r}");
+    }
+    // The scene model sees no difference at 1/64: it has no absolute light.
+    let scene = Preset::Davis346.config();
+    let r = count_frames(&scene, &ladder_frames(1.0 / 64.0, 40, 1000))
+        / count_frames(&scene, &mid_frames);
+    assert!((0.8..=1.2).contains(&r), "{r}");
+}
+
+/// An exposure change between frames (auto-exposure) is not a change of light: a still
+/// scene whose exposure doubles and halves fires no signal events in any light model, while
+/// the same frames without their exposure times fire on every step.
+#[test]
+fn an_exposure_change_is_not_a_change_of_light() {
+    let still = |k: usize, with_exposure: bool| {
+        let e = if k.is_multiple_of(2) { 1000u32 } else { 2000 };
+        let mut f = Frame::filled(k as i64 * 40_000, 64, 48, 0);
+        for (i, v) in f.luma.iter_mut().enumerate() {
+            let base = 0.05 + 0.1 * ((i % 64) / 8) as f64 / 7.0;
+            *v = (base * e as f64 / 1000.0 * 65535.0) as u16;
+        }
+        f.exposure_us = with_exposure.then_some(e);
+        f
+    };
+    for light in [LightModel::Scene, LightModel::Exposure, LightModel::Frame] {
+        let mut cfg = Preset::Davis346.config();
+        cfg.light = light;
+        cfg.leak_hz = 0.0;
+        cfg.shot_noise_hz = 0.0;
+        cfg.hot_pixel_fraction = 0.0;
+        let frames: Vec<Frame> = (0..10).map(|k| still(k, true)).collect();
+        let n = v2ce::calibrate::simulate(&frames, (64, 48), &cfg, 1)
+            .unwrap()
+            .len();
+        assert_eq!(n, 0, "{light:?}: {n} events from exposure changes");
+        let blind: Vec<Frame> = (0..10).map(|k| still(k, false)).collect();
+        let n = v2ce::calibrate::simulate(&blind, (64, 48), &cfg, 1)
+            .unwrap()
+            .len();
+        assert!(n > 64 * 48, "{light:?}: {n}");
+    }
 }

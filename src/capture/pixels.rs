@@ -42,6 +42,7 @@ pub fn decode(layout: &Layout, data: &[u8], t: i64, origin: &str) -> Result<Fram
         width,
         height,
         luma,
+        exposure_us: None,
     })
 }
 

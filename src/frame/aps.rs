@@ -87,6 +87,7 @@ impl FrameSource for ApsSource {
                 width: self.size.0,
                 height: self.size.1,
                 luma,
+                exposure_us: exposure_of(f.exposure),
             }));
         }
     }
@@ -97,5 +98,15 @@ impl FrameSource for ApsSource {
 
     fn encoding(&self) -> super::SourceEncoding {
         super::SourceEncoding::Linear
+    }
+}
+
+/// The exposure of a frame with exposure start and end `(b, e)` in us, when both are given and
+/// the span is positive and fits in 32 bits.
+fn exposure_of((b, e): (i64, i64)) -> Option<u32> {
+    if b > 0 && e > b {
+        u32::try_from(e - b).ok()
+    } else {
+        None
     }
 }

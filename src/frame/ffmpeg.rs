@@ -222,6 +222,7 @@ impl FrameSource for FfmpegSource {
             width: self.size.0,
             height: self.size.1,
             luma,
+            exposure_us: None,
         }))
     }
 

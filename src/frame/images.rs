@@ -284,6 +284,7 @@ impl FrameSource for ImageFolder {
             width: self.size.0,
             height: self.size.1,
             luma,
+            exposure_us: None,
         }))
     }
 

@@ -38,6 +38,10 @@ pub struct Frame {
     pub height: u16,
     /// Row-major linear luminance, 0..=[`FULL_SCALE`].
     pub luma: Vec<u16>,
+    /// Exposure time in us, when the source knows it (APS frames): the same light gives
+    /// values in proportion to it, so the pixel model can tell a change of exposure from a
+    /// change of light.
+    pub exposure_us: Option<u32>,
 }
 
 impl Frame {
@@ -48,6 +52,7 @@ impl Frame {
             width,
             height,
             luma: vec![value; width as usize * height as usize],
+            exposure_us: None,
         }
     }
 }

@@ -105,6 +105,7 @@ impl Resampler {
             width: self.to.0,
             height: self.to.1,
             luma,
+            exposure_us: frame.exposure_us,
         })
     }
 }
@@ -181,6 +182,7 @@ mod tests {
             width: 4,
             height: 4,
             luma,
+            exposure_us: None,
         };
         let out = Resampler::new((4, 4), (2, 2))
             .unwrap()
@@ -203,6 +205,7 @@ mod tests {
             width: 640,
             height: 480,
             luma: (0..640 * 480).map(|i| ((i % 640) * 100) as u16).collect(),
+            exposure_us: None,
         };
         let out = r.resample(&ramp).unwrap();
         let mean_in: f64 =

@@ -15,6 +15,7 @@ pub struct SceneSource {
     frames: usize,
     next: usize,
     scene: SceneFn,
+    exposure_us: Option<u32>,
 }
 
 impl SceneSource {
@@ -34,7 +35,15 @@ impl SceneSource {
             frames,
             next: 0,
             scene,
+            exposure_us: None,
         }
+    }
+
+    /// The same scene with every frame reporting an exposure of `us` (an APS-like source; the
+    /// scene function is then the light integrated over it, as a fraction of full scale).
+    pub fn with_exposure(mut self, us: u32) -> Self {
+        self.exposure_us = Some(us);
+        self
     }
 
     /// Time of frame `i` in us.
@@ -126,6 +135,7 @@ impl FrameSource for SceneSource {
             width: w,
             height: h,
             luma,
+            exposure_us: self.exposure_us,
         }))
     }
 

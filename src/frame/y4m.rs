@@ -175,6 +175,7 @@ impl FrameSource for Y4mSource {
             width: self.size.0,
             height: self.size.1,
             luma,
+            exposure_us: None,
         }))
     }
 

@@ -24,7 +24,7 @@ use crate::interval::Interval;
 use crate::voxel::VoxelGrid;
 
 pub use learned::{Geometry, LearnedConfig, LearnedStage1, LearnedStats};
-pub use physics::{PhysicsConfig, PhysicsSim, PhysicsStage1, PhysicsStats, Preset};
+pub use physics::{LightModel, PhysicsConfig, PhysicsSim, PhysicsStage1, PhysicsStats, Preset};
 
 /// What Stage 1 hands to Stage 2 for one frame interval.
 #[derive(Debug)]
@@ -165,6 +165,8 @@ pub struct PhysicsOverrides {
     pub max_substeps: Option<u32>,
     pub tile: Option<u16>,
     pub scene_level: Option<f64>,
+    pub light: Option<LightModel>,
+    pub exposure_us: Option<f64>,
 }
 
 impl PhysicsOverrides {
@@ -187,7 +189,9 @@ impl PhysicsOverrides {
             hot_pixel_hz,
             max_substeps,
             tile,
-            scene_level
+            scene_level,
+            light,
+            exposure_us
         );
         base
     }

@@ -83,6 +83,34 @@ pub struct PhysicsConfig {
     /// shot-noise half-light scaled by `g`, so only its contrast matters, as for a log pixel
     /// above its bandwidth limit (the illumination ladder, README).
     pub scene_level: f64,
+    /// Where the scene's light comes from (see [`LightModel`]).
+    pub light: LightModel,
+    /// The exposure (us) at which the light parameters above are fractions of full scale:
+    /// the calibration recording's APS exposure. Used by `light = "exposure"`.
+    pub exposure_us: f64,
+}
+
+/// How the pixel model learns how bright a scene is. A frame's values say only how bright it
+/// is relative to its own full scale; the photocurrent behind them, which sets the dark
+/// current's share, the knee and the photoreceptor's bandwidth, also depends on the exposure
+/// and the lens, which most sources do not report. In every model, frames that carry their
+/// exposure (APS frames) are read as light per unit of exposure, so an exposure change
+/// between frames (auto-exposure) is not a change of light and makes no events.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum LightModel {
+    /// The scene's mean is the calibration scene's light (`scene_level`): only contrast
+    /// matters, the same motion gives the same events at any brightness. The default, for
+    /// videos and image folders whose exposure and lens are unknown.
+    #[default]
+    Scene,
+    /// Absolute light from each frame's exposure, against the calibration recording's
+    /// (`exposure_us`): a frame with a mean of `m` at exposure `E` has `m * exposure_us / E`
+    /// of the calibration scene's light, so a dim scene's photoreceptors are slower and its
+    /// noise relatively higher. Frames without an exposure fall back to `scene`.
+    Exposure,
+    /// The light parameters are fractions of the frame's full scale (no scaling).
+    Frame,
 }
 
 impl Default for PhysicsConfig {
@@ -148,8 +176,10 @@ impl Preset {
                 max_substeps: 32,
                 tile: 16,
                 // The davis346 clip's first APS frame: mean linear luminance 0.303 of full
-                // scale, where the light parameters above were calibrated.
+                // scale at a 500 us exposure, where the light parameters above were calibrated.
                 scene_level: 0.303,
+                light: LightModel::Scene,
+                exposure_us: 500.0,
             },
             Preset::Dvxplorer => PhysicsConfig {
                 threshold_on: 0.25,
@@ -166,8 +196,10 @@ impl Preset {
                 max_substeps: 32,
                 tile: 16,
                 // The davis346 clip's first APS frame: mean linear luminance 0.303 of full
-                // scale, where the light parameters above were calibrated.
+                // scale at a 500 us exposure, where the light parameters above were calibrated.
                 scene_level: 0.303,
+                light: LightModel::Scene,
+                exposure_us: 500.0,
             },
             Preset::Ideal => PhysicsConfig {
                 threshold_on: 0.2,
@@ -184,6 +216,8 @@ impl Preset {
                 max_substeps: 64,
                 tile: 16,
                 scene_level: 0.0,
+                light: LightModel::Frame,
+                exposure_us: 0.0,
             },
         }
     }
@@ -220,6 +254,18 @@ impl PhysicsConfig {
                 "scene_level = {} must be in [0, 1] (0: off)",
                 self.scene_level
             ));
+        }
+        if !(self.exposure_us.is_finite() && (0.0..=1e8).contains(&self.exposure_us)) {
+            return bad(format!(
+                "exposure_us = {} must be in [0, 1e8] us",
+                self.exposure_us
+            ));
+        }
+        if self.light == LightModel::Exposure && self.exposure_us <= 0.0 {
+            return bad(
+                "light = \"exposure\" needs exposure_us, the calibration recording's exposure"
+                    .into(),
+            );
         }
         if !(self.linlog_knee > 0.0 && self.linlog_knee <= 1.0) {
             return bad(format!(
@@ -288,10 +334,19 @@ pub struct PhysicsSim {
     /// Per tile: every pixel is at rest (filter settled, nothing pending).
     settled: Vec<bool>,
     hot: Vec<u32>,
-    /// The scene's light relative to the calibration scene's (1 unless `scene_level` is set).
+    /// Frame values per unit of calibration light in the current frame: `log_lut` and the
+    /// filter rows read a value `v` as `v / light_scale` of the calibration scene's full scale.
     light_scale: f64,
-    /// `light_scale` has been set from the scene.
-    referenced: bool,
+    /// Frame values per unit of calibration light for the photoreceptor's bandwidth and shot
+    /// noise (differs from `light_scale` under the exposure model only).
+    photo_scale: f64,
+    /// The scene's light relative to the calibration scene's, at `first_exposure` (scene and
+    /// frame light models), once set.
+    reference: Option<f64>,
+    /// The exposure of the first frame that reported one, us.
+    first_exposure: Option<u32>,
+    /// A frame without an exposure under `light = "exposure"` has been reported.
+    warned_exposure: bool,
     stats: PhysicsStats,
 }
 
@@ -320,6 +375,30 @@ fn quantization_step(luma: &[u16]) -> u16 {
     step
 }
 
+/// The mean of `frame` (a fraction of full scale) if it can set a scene's level under the
+/// scene light model: at least `MIN_STEPS` of the source's quantization steps.
+fn scene_mean(frame: &Frame) -> Option<f64> {
+    let n = frame.luma.len().max(1);
+    let mean = frame.luma.iter().map(|&v| v as f64).sum::<f64>() / n as f64;
+    (mean >= MIN_STEPS * quantization_step(&frame.luma) as f64).then_some(mean / FULL_SCALE as f64)
+}
+
+/// The `exposure_us` that makes `light = "exposure"` see `frames` (a recording from the
+/// sensor `cfg` was fitted to, with its exposures) as the scene model sees them: the exposure
+/// at which the scene's mean would be `scene_level`. `None` when the frame that sets the
+/// scene's level has no exposure.
+pub fn reference_exposure(cfg: &PhysicsConfig, frames: &[Frame]) -> Option<f64> {
+    let (mean, frame) = frames.iter().find_map(|f| scene_mean(f).map(|m| (m, f)))?;
+    let e = frame.exposure_us.filter(|&e| e > 0)? as f64;
+    Some(
+        if cfg.light == LightModel::Frame || cfg.scene_level <= 0.0 {
+            e
+        } else {
+            e * cfg.scene_level / mean
+        },
+    )
+}
+
 /// The filter-table row of luminance `v` (`inv_g`: 1 over the scene's light scale): 256 rows
 /// over the calibration scene's full range.
 fn filter_index(v: u16, inv_g: f32) -> usize {
@@ -330,16 +409,25 @@ fn filter_index(v: u16, inv_g: f32) -> usize {
     }
 }
 
-/// The log front end at luminance `i` (fraction of full scale), its light parameters scaled by
-/// `g` (see [`PhysicsConfig::scene_level`]).
-fn log_response(i: f64, cfg: &PhysicsConfig, g: f64) -> f64 {
-    let x = i + cfg.dark_current * g;
-    let k = cfg.linlog_knee * g;
+/// The log front end at light `i`, a fraction of the calibration scene's full scale (above 1
+/// for a brighter scene).
+fn log_response(i: f64, cfg: &PhysicsConfig) -> f64 {
+    let x = i + cfg.dark_current;
+    let k = cfg.linlog_knee;
     if x >= k {
         x.ln()
     } else {
         k.ln() + (x - k) / k
     }
+}
+
+/// [`log_response`] of every 16-bit frame value at `g` frame values per unit of calibration
+/// light.
+fn log_table(cfg: &PhysicsConfig, g: f64) -> Vec<f32> {
+    let scale = 1.0 / (FULL_SCALE as f64 * g);
+    (0..=FULL_SCALE as u32)
+        .map(|v| log_response(v as f64 * scale, cfg) as f32)
+        .collect()
 }
 
 impl PhysicsSim {
@@ -350,9 +438,7 @@ impl PhysicsSim {
             return Err(Error::invalid("sensor size", "0 pixels".to_string()));
         }
         let n = width as usize * height as usize;
-        let log_lut = (0..=FULL_SCALE as u32)
-            .map(|v| log_response(v as f64 / FULL_SCALE as f64, &cfg, 1.0) as f32)
-            .collect();
+        let log_lut = log_table(&cfg, 1.0);
         let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed ^ 0x005E_ED0F_71C5);
         let mut draw = |mean: f64| -> Vec<f32> {
             match Normal::new(mean, cfg.threshold_sigma) {
@@ -387,7 +473,10 @@ impl PhysicsSim {
             hot,
             cfg,
             light_scale: 1.0,
-            referenced: false,
+            photo_scale: 1.0,
+            reference: None,
+            first_exposure: None,
+            warned_exposure: false,
             stats: PhysicsStats::default(),
         })
     }
@@ -414,24 +503,12 @@ impl PhysicsSim {
                 ),
             ));
         }
-        if self.cfg.scene_level > 0.0 && !self.referenced {
-            // The scene's level comes from its first frame that is not nearly black: a mean of
-            // at least `MIN_STEPS` of the source's quantization steps (a video that fades in
-            // from black would otherwise set the dark current and knee so low that its dark
-            // noise fires). Until then the preset's own values hold, and the pixels start over
-            // from the frame that sets it.
-            let mean = frame.luma.iter().map(|&v| v as f64).sum::<f64>() / n as f64;
-            let g = mean / (self.cfg.scene_level * FULL_SCALE as f64);
-            if mean >= MIN_STEPS * quantization_step(&frame.luma) as f64 {
-                self.referenced = true;
-                self.light_scale = g.clamp(1e-4, 1e4);
-                let (cfg, g) = (&self.cfg, self.light_scale);
-                self.log_lut = (0..=FULL_SCALE as u32)
-                    .map(|v| log_response(v as f64 / FULL_SCALE as f64, cfg, g) as f32)
-                    .collect();
-                self.prev_t = None;
-            }
+        let (g, photo) = self.frame_light(frame);
+        if g != self.light_scale {
+            self.light_scale = g;
+            self.log_lut = log_table(&self.cfg, g);
         }
+        self.photo_scale = photo;
         let Some(t0) = self.prev_t else {
             for (i, &v) in frame.luma.iter().enumerate() {
                 let l = self.log_lut[v as usize];
@@ -486,6 +563,53 @@ impl PhysicsSim {
         Ok(())
     }
 
+    /// Frame values per unit of calibration light in `frame` (see [`LightModel`]): for the
+    /// log front end (the scene model's scale, which also sets the frames' noise floor: the
+    /// dark current and knee act on frame values), and for the photoreceptor (its bandwidth
+    /// and shot noise: absolute under the exposure model). Under the scene model the scene's
+    /// level comes from its first frame that is not nearly black: a mean of at least
+    /// `MIN_STEPS` of the source's quantization steps (a video that fades in from black would
+    /// otherwise set the dark current and knee so low that its dark noise fires). Until then
+    /// the preset's own values hold, and the pixels start over from the frame that sets it.
+    fn frame_light(&mut self, frame: &Frame) -> (f64, f64) {
+        let cfg = &self.cfg;
+        let exposure = frame.exposure_us.filter(|&e| e > 0);
+        if self.first_exposure.is_none() {
+            self.first_exposure = exposure;
+        }
+        // Frame values per unit of light, relative to the first frame with an exposure.
+        let ratio = match (exposure, self.first_exposure) {
+            (Some(e), Some(e0)) => e as f64 / e0 as f64,
+            _ => 1.0,
+        };
+        if self.reference.is_none() {
+            if cfg.light == LightModel::Frame || cfg.scene_level <= 0.0 {
+                self.reference = Some(1.0);
+            } else if let Some(mean) = scene_mean(frame) {
+                self.reference = Some((mean / cfg.scene_level / ratio).clamp(1e-4, 1e4));
+                self.prev_t = None;
+            }
+        }
+        let scene = (self.reference.unwrap_or(1.0) * ratio).clamp(1e-4, 1e4);
+        if cfg.light != LightModel::Exposure {
+            return (scene, scene);
+        }
+        match exposure {
+            Some(e) => (scene, (e as f64 / cfg.exposure_us).clamp(1e-4, 1e4)),
+            None => {
+                if !self.warned_exposure {
+                    self.warned_exposure = true;
+                    tracing::warn!(
+                        "light = \"exposure\": a frame at {} us has no exposure time; its \
+                         light is taken relative to the scene instead",
+                        frame.t
+                    );
+                }
+                (scene, scene)
+            }
+        }
+    }
+
     /// Time constant (us) and decay over `dt` for each of 256 light levels, relative to the
     /// scene's (see [`filter_index`]): `(tau, e^(-dt/tau))`, `tau = 0` for an instant pixel.
     fn filter_table(&self, dt: f64) -> Vec<(f32, f32)> {
@@ -516,7 +640,7 @@ impl PhysicsSim {
         out: &mut Vec<Event>,
     ) -> bool {
         let inv_dt = 1.0 / (t1 - t0) as f32;
-        let inv_g = (1.0 / self.light_scale) as f32;
+        let inv_g = (1.0 / self.photo_scale) as f32;
         let mut settled = true;
         let mut slow: [usize; 64] = [0; 64];
         let mut n_slow = 0;
@@ -571,7 +695,7 @@ impl PhysicsSim {
     ) {
         let l1 = self.log_lut[v as usize] as f64;
         let l0 = self.l_in[i] as f64;
-        let tau = filter[filter_index(v, (1.0 / self.light_scale) as f32)].0 as f64;
+        let tau = filter[filter_index(v, (1.0 / self.photo_scale) as f32)].0 as f64;
         self.crossings(i, l0, l1, t0, t1, tau, out);
     }
 
@@ -651,7 +775,7 @@ impl PhysicsSim {
 
     /// Sparse noise events in `(t0, frame.t]`.
     fn noise(&mut self, t0: i64, frame: &Frame, out: &mut Vec<Event>) {
-        let light_scale = self.light_scale;
+        let light_scale = self.photo_scale;
         let cfg = &self.cfg;
         let dt_s = (frame.t - t0) as f64 * 1e-6;
         let n = self.width as usize * self.height as usize;
