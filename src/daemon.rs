@@ -1,6 +1,6 @@
 //! `v2ce run`, the live daemon, wired from the configuration: the source (a camera, a file
 //! replayed in real time, or the bundled fixture), the outputs (UDP, TCP, file), signals,
-//! systemd readiness and status, and periodic stats on the log; and [`bench`], which measures it.
+//! systemd readiness and status, and periodic stats on the log; and [`bench()`], which measures it.
 
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -277,7 +277,7 @@ pub fn run(config: &Config, stop: &AtomicBool) -> Result<Report> {
     Ok(report)
 }
 
-/// What [`bench`] measured for one frame size.
+/// What [`bench()`] measured for one frame size.
 #[derive(Debug, Clone, Serialize)]
 pub struct BenchResult {
     /// Frame width and height.

@@ -1056,28 +1056,10 @@ fn calibrate(args: CalibrateArgs) -> Result<()> {
             serde_json::to_string(&fit).map_err(|e| Error::invalid("report", e.to_string()))?;
         println!("{text}");
     } else {
-        let c = &fit.config;
-        println!(
-            "fitted on {} intervals ({} runs): threshold ON {:.3} OFF {:.3}, sigma {:.3}, cutoff {:.0} Hz, leak {:.3} Hz, shot noise {:.3} Hz",
-            fit.intervals, fit.runs, c.threshold_on, c.threshold_off, c.threshold_sigma, c.cutoff_hz, c.leak_hz, c.shot_noise_hz
+        print!(
+            "{}",
+            v2ce::calibrate::report(&fit, &base.config(), base.name())
         );
-        println!(
-            "all intervals: TF1 {:.3}, count ratio {:.3}",
-            fit.whole.tf1, fit.whole.count_ratio
-        );
-        for h in &fit.held_out {
-            println!(
-                "fitted on the {} half, scored on the other: TF1 {:.3} (count ratio {:.3}); {} {:.3} ({:.3}); ideal {:.3} ({:.3})",
-                h.fitted_on,
-                h.fitted.tf1,
-                h.fitted.count_ratio,
-                base.name(),
-                h.base.tf1,
-                h.base.count_ratio,
-                h.ideal.tf1,
-                h.ideal.count_ratio
-            );
-        }
         eprintln!("v2ce: wrote {}", args.output.display());
     }
     Ok(())

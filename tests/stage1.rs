@@ -185,6 +185,17 @@ fn bad_parameters_and_frames_are_errors() {
     let mut cfg = Preset::Davis346.config();
     cfg.cutoff_hz = -1.0;
     assert!(PhysicsSim::new(cfg, 4, 4, 0).is_err());
+    let mut cfg = Preset::Davis346.config();
+    cfg.flicker_depth = 1.0;
+    let e = PhysicsSim::new(cfg, 4, 4, 0).err().unwrap().to_string();
+    assert!(e.contains("flicker_depth"), "{e}");
+    let mut cfg = Preset::Davis346.config();
+    cfg.flicker_hz = f64::INFINITY;
+    assert!(PhysicsSim::new(cfg, 4, 4, 0).is_err());
+    let mut cfg = Preset::Ideal.config();
+    cfg.light = LightModel::Exposure;
+    let e = PhysicsSim::new(cfg, 4, 4, 0).err().unwrap().to_string();
+    assert!(e.contains("exposure_us"), "{e}");
     let mut sim = PhysicsSim::new(Preset::Ideal.config(), 4, 4, 0).unwrap();
     let mut out = Vec::new();
     sim.step(&Frame::filled(10, 4, 4, 5), &mut out).unwrap();
@@ -419,4 +430,65 @@ fn an_exposure_change_is_not_a_change_of_light() {
             .len();
         assert!(n > 64 * 48, "{light:?}: {n}");
     }
+}
+
+/// How strongly `events` lock to a frequency (see [`v2ce::calibrate::phase_lock`]).
+fn phase_lock(events: &[Event], hz: f64) -> f64 {
+    let times: Vec<i64> = events.iter().map(|e| e.t).collect();
+    v2ce::calibrate::phase_lock(&times, hz)
+}
+
+/// Flickering light (which frames at 25 Hz cannot show) makes a still scene fire once per
+/// cycle and polarity at pixels where the filtered swing exceeds the thresholds: ON events lock
+/// to the flicker's phase, more depth gives more events, dark pixels (slower, and diluted by
+/// the dark current) fire less, and steady light gives none.
+#[test]
+fn flickering_light_fires_every_cycle_on_a_still_scene() {
+    let still: Vec<Frame> = {
+        let mut src = SceneSource::still(64, 48, 25.0, 11);
+        std::iter::from_fn(|| src.next_frame().unwrap()).collect()
+    };
+    let run_with = |depth: f64| {
+        let mut cfg = Preset::Davis346.config();
+        cfg.leak_hz = 0.0;
+        cfg.shot_noise_hz = 0.0;
+        cfg.hot_pixel_fraction = 0.0;
+        cfg.flicker_hz = 100.0;
+        cfg.flicker_depth = depth;
+        v2ce::calibrate::simulate(&still, (64, 48), &cfg, 1).unwrap()
+    };
+    assert!(run_with(0.0).is_empty());
+    let (some, more) = (run_with(0.3), run_with(0.6));
+    eprintln!(
+        "flicker: {} events at depth 0.3, {} at 0.6",
+        some.len(),
+        more.len()
+    );
+    assert!(some.len() > 1000, "{}", some.len());
+    assert!(more.len() as f64 > 1.3 * some.len() as f64);
+    let on: Vec<Event> = more.iter().filter(|e| e.on).copied().collect();
+    let (locked, other) = (phase_lock(&on, 100.0), phase_lock(&on, 87.0));
+    eprintln!("ON phase lock: {locked:.3} at 100 Hz, {other:.3} at 87 Hz");
+    assert!(locked > 0.7 && other < 0.2, "{locked} {other}");
+    // 0.4 s of 100 Hz flicker (40 cycles): no pixel crosses more thresholds per cycle than
+    // the light's own log swing, ln((1 + d) / (1 - d)), holds both ways at a low threshold
+    // (0.15, five sigmas under the mean); brighter pixels fire more than darker ones.
+    let per_pixel = |lo: f64, hi: f64| {
+        let f = &still[0];
+        let pixels: Vec<usize> = (0..f.luma.len())
+            .filter(|&i| (lo..hi).contains(&(f.luma[i] as f64 / 65535.0)))
+            .collect();
+        let n = more
+            .iter()
+            .filter(|e| pixels.contains(&(e.y as usize * 64 + e.x as usize)))
+            .count();
+        n as f64 / pixels.len().max(1) as f64
+    };
+    let (dark, bright) = (per_pixel(0.0, 0.2), per_pixel(0.7, 1.0));
+    eprintln!("events per pixel: dark {dark:.1}, bright {bright:.1}");
+    let most = 2.0 * (2.0 * 0.6f64.atanh() / 0.15).ceil() * 41.0;
+    assert!(
+        bright > dark && bright <= most,
+        "{dark} {bright} (most {most})"
+    );
 }

@@ -1,4 +1,4 @@
-//! Where events go: one [`Sink`] trait, implemented by a file ([`file`]), UDP datagrams
+//! Where events go: one [`Sink`] trait, implemented by a file ([`file`](mod@file)), UDP datagrams
 //! ([`udp`]) and byte streams over TCP ([`tcp`]: DV's AEDAT 4.0 network stream or Prophesee
 //! RAW). `convert` and the daemon hand each sink time-ordered batches of events.
 //!

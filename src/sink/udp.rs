@@ -10,7 +10,7 @@
 //! ([`Emission::Asap`]) or each event at its own time ([`Emission::EventTime`], the daemon's
 //! default: a datagram holds the events due within one `slice` and leaves when the last of them
 //! is due, so none arrives early; see [`super::emit`]). The sending thread wakes
-//! [`WAKE_GRACE`] after a datagram is due and sends every datagram due by then, and runs at
+//! `WAKE_GRACE` (0.2 ms) after a datagram is due and sends every datagram due by then, and runs at
 //! realtime priority when allowed ([`crate::realtime`]), so its wakes are few and on time. For `spif`, which carries no
 //! timestamps, the arrival time is the event time. An optional pacing limit (datagrams per
 //! second) spaces the datagrams out further. Both sleep the sending thread only, which in the

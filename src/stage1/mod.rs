@@ -167,6 +167,8 @@ pub struct PhysicsOverrides {
     pub scene_level: Option<f64>,
     pub light: Option<LightModel>,
     pub exposure_us: Option<f64>,
+    pub flicker_hz: Option<f64>,
+    pub flicker_depth: Option<f64>,
 }
 
 impl PhysicsOverrides {
@@ -191,7 +193,9 @@ impl PhysicsOverrides {
             tile,
             scene_level,
             light,
-            exposure_us
+            exposure_us,
+            flicker_hz,
+            flicker_depth
         );
         base
     }

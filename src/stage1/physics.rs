@@ -23,11 +23,40 @@
 //!    thinned by `1 / (1 + I / I_half)` with `I_half = 0.05`), and hot pixels (a fixed set of
 //!    `hot_pixel_fraction` pixels firing at `hot_pixel_hz`).
 //!
-//! **Light relative to the scene.** With `scene_level` set (the presets' default), the light
-//! parameters above (`I_d`, `I_k`, the bandwidth curve, `I_half`) hold for a scene whose mean
-//! luminance is `scene_level` and scale with each scene's own mean, taken from its first frame
-//! that is not nearly black: only contrast matters, as for a log pixel above its bandwidth
-//! limit, so the same motion gives the same events at any exposure (the illumination ladder).
+//! 6. **Flicker** (optional): lamps on the mains flicker at 100 or 120 Hz, which frames at
+//!    25-60 Hz cannot show. With `flicker_depth > 0` the light is `I (1 + d sin(2 pi f t))`:
+//!    its log swing `atanh(d)`, diluted by the dark current and passed by the photoreceptor's
+//!    low-pass (gain and phase lag at `f`), is added to the response, so a still pixel fires
+//!    every cycle when the swing passes its thresholds. `v2ce calibrate` finds it in a
+//!    recording's events.
+//!
+//! **Light.** A frame's values say how bright it is relative to its own full scale, not how
+//! much photocurrent lies behind them (see [`LightModel`]). By default (`light = "scene"`)
+//! the light parameters (`I_d`, `I_k`, the bandwidth curve, `I_half`) hold for a scene whose
+//! mean is `scene_level` and scale with each scene's own mean, taken from its first frame that
+//! is not nearly black: only contrast matters, as for a log pixel above its bandwidth limit,
+//! so the same motion gives the same events at any exposure (the illumination ladder). With
+//! `light = "exposure"` the photoreceptor (bandwidth, shot noise) sees absolute light from each
+//! frame's exposure, against the calibration recording's. In every model an exposure change
+//! between frames that report it is not a change of light.
+//!
+//! **Parameters, units and sources** (tags as in the project's sensor notes: \[L08\]
+//! Lichtsteiner et al. JSSC 2008, \[B14\] Brandli et al. JSSC 2014, \[v2e\] the v2e simulator's
+//! defaults, \[DVM\] DVS-Voltmeter's DAVIS346 fit, \[DND\] Guo & Delbruck's noise measurements):
+//!
+//! | parameter | unit | davis346 | published | how ours was set |
+//! |---|---|---|---|---|
+//! | `threshold_on/off` | ln | 0.28 | DAVIS240 11% contrast = 0.10 \[B14\]; ~0.19 for a DAVIS346 \[DVM\]; v2e 0.2 | count-matched on the davis346 clip (frames at 25 Hz miss sub-frame motion, so a frame-driven model needs more than the pixel's own) |
+//! | `threshold_sigma` | ln | 0.03 | 2.1% \[L08\], 3.5% \[B14\] contrast matching; v2e 0.03 | published range |
+//! | `refractory_us` | us | 100 | not published for DAVIS; v2e 500, IEBCS 50 | between the two |
+//! | `cutoff_hz` | Hz at full scale | 200 | 3 kHz at 1 klux \[L08\]; v2e 300 at white | fitted: an effective bandwidth for frame-interpolated input, not the pixel's own |
+//! | `dark_current` | fraction of full scale | 0.02 | 120-130 dB range \[L08, B14\] (the photodiode's is far lower) | the frames' noise floor: read noise of dark APS pixels would otherwise fire |
+//! | `linlog_knee` | fraction of full scale | 0.08 | v2e linear below 20/255 | as `dark_current` |
+//! | `leak_hz` | events/px/s | 0.02 | ~0.2 measured \[DND\]; v2e 0.01 in normal light | calibrate on the clip's still pixels |
+//! | `shot_noise_hz` | events/px/s, dark | 0.01 | ~10 in low light \[DND\]; v2e 0.001 good light, 5 noisy | as `leak_hz` (daylight clip) |
+//! | `hot_pixel_fraction`, `hot_pixel_hz` | -, events/s | 1e-4, 2 | not published | assumption |
+//! | `scene_level`, `exposure_us` | fraction, us | 0.303, 500 | - | the clip's first APS frame |
+//! | `flicker_hz`, `flicker_depth` | Hz, - | 0, 0 | mains lamps 100/120 Hz | per scene: `v2ce calibrate` |
 //!
 //! **Work follows scene activity.** The frame is cut into tiles; a tile whose pixels are
 //! identical to the previous frame and whose pixels have settled (filter at its input, nothing
@@ -88,6 +117,13 @@ pub struct PhysicsConfig {
     /// The exposure (us) at which the light parameters above are fractions of full scale:
     /// the calibration recording's APS exposure. Used by `light = "exposure"`.
     pub exposure_us: f64,
+    /// Frequency of the light's flicker, Hz (0: steady light). Lamps on the mains flicker at
+    /// twice its frequency: 100 Hz on 50 Hz grids, 120 Hz on 60 Hz ones. Frames at 25-60 Hz
+    /// cannot show it (it aliases or averages out over the exposure), a DVS records every
+    /// cycle; `v2ce calibrate` finds it in a recording's events.
+    pub flicker_hz: f64,
+    /// Depth of the flicker: the light is `I (1 + depth sin(2 pi flicker_hz t))`, 0 to 0.99.
+    pub flicker_depth: f64,
 }
 
 /// How the pixel model learns how bright a scene is. A frame's values say only how bright it
@@ -180,6 +216,8 @@ impl Preset {
                 scene_level: 0.303,
                 light: LightModel::Scene,
                 exposure_us: 500.0,
+                flicker_hz: 0.0,
+                flicker_depth: 0.0,
             },
             Preset::Dvxplorer => PhysicsConfig {
                 threshold_on: 0.25,
@@ -200,6 +238,8 @@ impl Preset {
                 scene_level: 0.303,
                 light: LightModel::Scene,
                 exposure_us: 500.0,
+                flicker_hz: 0.0,
+                flicker_depth: 0.0,
             },
             Preset::Ideal => PhysicsConfig {
                 threshold_on: 0.2,
@@ -218,6 +258,8 @@ impl Preset {
                 scene_level: 0.0,
                 light: LightModel::Frame,
                 exposure_us: 0.0,
+                flicker_hz: 0.0,
+                flicker_depth: 0.0,
             },
         }
     }
@@ -259,6 +301,18 @@ impl PhysicsConfig {
             return bad(format!(
                 "exposure_us = {} must be in [0, 1e8] us",
                 self.exposure_us
+            ));
+        }
+        if !(self.flicker_hz.is_finite() && (0.0..=10_000.0).contains(&self.flicker_hz)) {
+            return bad(format!(
+                "flicker_hz = {} must be in [0, 10000] Hz (0: steady light)",
+                self.flicker_hz
+            ));
+        }
+        if !(self.flicker_depth.is_finite() && (0.0..=0.99).contains(&self.flicker_depth)) {
+            return bad(format!(
+                "flicker_depth = {} must be in [0, 0.99]",
+                self.flicker_depth
             ));
         }
         if self.light == LightModel::Exposure && self.exposure_us <= 0.0 {
@@ -350,6 +404,10 @@ pub struct PhysicsSim {
     stats: PhysicsStats,
 }
 
+/// Most sub-steps per pixel and frame interval under flickering light (`max_substeps` if
+/// higher): eight per cycle of 100 Hz flicker over a 1.28 s gap.
+const FLICKER_MAX_SUBSTEPS: u32 = 1024;
+
 /// A frame sets the scene's level when its mean is at least this many of its source's
 /// quantization steps.
 const MIN_STEPS: f64 = 8.0;
@@ -428,6 +486,19 @@ fn log_table(cfg: &PhysicsConfig, g: f64) -> Vec<f32> {
     (0..=FULL_SCALE as u32)
         .map(|v| log_response(v as f64 * scale, cfg) as f32)
         .collect()
+}
+
+/// The photoreceptor at one light level over a frame interval.
+#[derive(Debug, Clone, Copy)]
+struct FilterRow {
+    /// Time constant, us (0: an instant pixel).
+    tau: f32,
+    /// `e^(-dt/tau)` over the frame interval.
+    decay: f32,
+    /// Amplitude of the flicker in the filtered log response (0: steady light).
+    amp: f32,
+    /// The flicker's phase lag behind the light, radians.
+    lag: f32,
 }
 
 impl PhysicsSim {
@@ -518,7 +589,22 @@ impl PhysicsSim {
             }
             self.prev_luma.clone_from(&frame.luma);
             self.prev_t = Some(frame.t);
-            self.settled.iter_mut().for_each(|s| *s = true);
+            // Under flickering light a pixel at rest may still fire: the first interval
+            // finds out which. Each pixel's memorised level was set by its last event, at a
+            // phase of the flicker this model cannot know: drawn once per pixel, so a swing
+            // wider than the threshold but narrower than twice it fires at some pixels.
+            let steady = self.cfg.flicker_hz <= 0.0 || self.cfg.flicker_depth <= 0.0;
+            self.settled.iter_mut().for_each(|s| *s = steady);
+            if !steady {
+                let table = self.filter_table(0.0);
+                let inv_g = (1.0 / self.photo_scale) as f32;
+                let mut rng = Xoshiro256PlusPlus::seed_from_u64(self.seed ^ 0xF11C_4E12);
+                for (i, &v) in frame.luma.iter().enumerate() {
+                    let row = table[filter_index(v, inv_g)];
+                    let phase: f32 = rng.gen_range(0.0..std::f32::consts::TAU);
+                    self.l_ref[i] += row.amp * phase.sin();
+                }
+            }
             self.stats.frames += 1;
             return Ok(());
         };
@@ -610,21 +696,51 @@ impl PhysicsSim {
         }
     }
 
-    /// Time constant (us) and decay over `dt` for each of 256 light levels, relative to the
-    /// scene's (see [`filter_index`]): `(tau, e^(-dt/tau))`, `tau = 0` for an instant pixel.
-    fn filter_table(&self, dt: f64) -> Vec<(f32, f32)> {
+    /// The photoreceptor at each of 256 light levels, relative to the scene's (see
+    /// [`filter_index`]), over a frame interval of `dt` us.
+    fn filter_table(&self, dt: f64) -> Vec<FilterRow> {
         let cfg = &self.cfg;
+        let flicker = cfg.flicker_hz > 0.0 && cfg.flicker_depth > 0.0;
         (0..256)
             .map(|b| {
-                if cfg.cutoff_hz <= 0.0 {
-                    return (0.0, 0.0);
-                }
                 let intensity = (b as f64 + 0.5) / 256.0;
                 let fc = cfg.cutoff_hz * (intensity + cfg.dark_current) / (1.0 + cfg.dark_current);
-                let tau = 1e6 / (2.0 * std::f64::consts::PI * fc.max(1e-3));
-                (tau as f32, (-dt / tau).exp() as f32)
+                let (tau, decay) = if cfg.cutoff_hz > 0.0 {
+                    let tau = 1e6 / (2.0 * std::f64::consts::PI * fc.max(1e-3));
+                    (tau, (-dt / tau).exp())
+                } else {
+                    (0.0, 0.0)
+                };
+                // The flicker's log amplitude, diluted by the dark current and passed by the
+                // first-order low-pass with its gain and phase lag at the flicker frequency.
+                let (amp, lag) = if flicker {
+                    let ratio = if cfg.cutoff_hz > 0.0 {
+                        cfg.flicker_hz / fc.max(1e-3)
+                    } else {
+                        0.0
+                    };
+                    let dilution = intensity / (intensity + cfg.dark_current);
+                    (
+                        cfg.flicker_depth.atanh() * dilution / (1.0 + ratio * ratio).sqrt(),
+                        ratio.atan(),
+                    )
+                } else {
+                    (0.0, 0.0)
+                };
+                FilterRow {
+                    tau: tau as f32,
+                    decay: decay as f32,
+                    amp: amp as f32,
+                    lag: lag as f32,
+                }
             })
             .collect()
+    }
+
+    /// The flicker's phase (radians) at time `t` us.
+    fn flicker_phase(&self, t: i64) -> f64 {
+        let period = 1e6 / self.cfg.flicker_hz;
+        std::f64::consts::TAU * (t as f64).rem_euclid(period) / period
     }
 
     /// Advances the pixels of `range` (one tile row) from `t0` to `t1`; returns whether all are
@@ -636,7 +752,7 @@ impl PhysicsSim {
         luma: &[u16],
         t0: i64,
         t1: i64,
-        filter: &[(f32, f32)],
+        filter: &[FilterRow],
         out: &mut Vec<Event>,
     ) -> bool {
         let inv_dt = 1.0 / (t1 - t0) as f32;
@@ -656,15 +772,18 @@ impl PhysicsSim {
             let l1 = self.log_lut[v as usize];
             let l0 = l_in[j];
             let y0 = l_p[j];
-            let (tau, decay) = filter[filter_index(v, inv_g)];
+            let FilterRow {
+                tau, decay, amp, ..
+            } = filter[filter_index(v, inv_g)];
             let y1 = if tau > 0.0 {
                 let rt = (l1 - l0) * inv_dt * tau;
                 l1 - rt + (y0 - l0 + rt) * decay
             } else {
                 l1
             };
-            let hi = y0.max(l0).max(l1).max(y1);
-            let lo = y0.min(l0).min(l1).min(y1);
+            // The flicker swings the response by up to `amp` either way.
+            let hi = y0.max(l0).max(l1).max(y1) + amp;
+            let lo = y0.min(l0).min(l1).min(y1) - amp;
             let lref = l_ref[j];
             if hi - lref < on[j] && lref - lo < off[j] {
                 settled &= l0 == l1 && (y1 - l1).abs() < 1e-4;
@@ -690,13 +809,13 @@ impl PhysicsSim {
         v: u16,
         t0: i64,
         t1: i64,
-        filter: &[(f32, f32)],
+        filter: &[FilterRow],
         out: &mut Vec<Event>,
     ) {
         let l1 = self.log_lut[v as usize] as f64;
         let l0 = self.l_in[i] as f64;
-        let tau = filter[filter_index(v, (1.0 / self.photo_scale) as f32)].0 as f64;
-        self.crossings(i, l0, l1, t0, t1, tau, out);
+        let row = filter[filter_index(v, (1.0 / self.photo_scale) as f32)];
+        self.crossings(i, l0, l1, t0, t1, row, out);
     }
 
     /// The slow path of [`PhysicsSim::row`]: sub-steps with timed crossings.
@@ -708,9 +827,11 @@ impl PhysicsSim {
         l1: f64,
         t0: i64,
         t1: i64,
-        tau: f64,
+        row: FilterRow,
         out: &mut Vec<Event>,
     ) {
+        let tau = row.tau as f64;
+        let amp = row.amp as f64;
         let mut y = self.l_p[i] as f64;
         let mut lref = self.l_ref[i] as f64;
         let (on, off) = (self.thr_on[i] as f64, self.thr_off[i] as f64);
@@ -721,7 +842,23 @@ impl PhysicsSim {
             // Short steps against the time constant, so the filter's curve is followed.
             steps = steps.max((dt / tau).ceil().min(8.0) as u32);
         }
-        let steps = steps.clamp(1, self.cfg.max_substeps);
+        let mut most = self.cfg.max_substeps;
+        let (mut phase, mut omega) = (0.0, 0.0);
+        if amp > 0.0 {
+            // Eight steps per flicker cycle, so each cycle's crossings are found and timed.
+            steps = steps.max((8.0 * self.cfg.flicker_hz * dt * 1e-6).ceil().min(1e6) as u32);
+            most = most.max(FLICKER_MAX_SUBSTEPS);
+            phase = self.flicker_phase(t0) - row.lag as f64;
+            omega = std::f64::consts::TAU * self.cfg.flicker_hz * 1e-6;
+        }
+        let flicker = |t: f64| {
+            if amp > 0.0 {
+                amp * (phase + omega * t).sin()
+            } else {
+                0.0
+            }
+        };
+        let steps = steps.clamp(1, most);
         let h = dt / steps as f64;
         let decay = if tau > 0.0 { (-h / tau).exp() } else { 0.0 };
         let rt = (l1 - l0) / dt * tau;
@@ -734,9 +871,9 @@ impl PhysicsSim {
         for k in 1..=steps {
             let u_prev = l0 + (l1 - l0) * (k - 1) as f64 / steps as f64;
             let u = l0 + (l1 - l0) * k as f64 / steps as f64;
-            let prev = y;
+            let y_prev = y;
             y = if tau > 0.0 {
-                u - rt + (prev - u_prev + rt) * decay
+                u - rt + (y_prev - u_prev + rt) * decay
             } else {
                 u
             };
@@ -744,16 +881,19 @@ impl PhysicsSim {
             // would cost f64 its microseconds, and a recording and its export with times from
             // another origin would differ by 1 us here and there.
             let t_start = h * (k - 1) as f64;
+            // The response with the flicker's swing, at the step's start and end.
+            let prev = y_prev + flicker(t_start);
+            let now = y + flicker(t_start + h);
             loop {
-                let (level, polarity) = if y - lref >= on {
+                let (level, polarity) = if now - lref >= on {
                     (lref + on, true)
-                } else if lref - y >= off {
+                } else if lref - now >= off {
                     (lref - off, false)
                 } else {
                     break;
                 };
-                let frac = if (y - prev).abs() > 1e-12 {
-                    ((level - prev) / (y - prev)).clamp(0.0, 1.0)
+                let frac = if (now - prev).abs() > 1e-12 {
+                    ((level - prev) / (now - prev)).clamp(0.0, 1.0)
                 } else {
                     1.0
                 };

@@ -85,7 +85,7 @@ pub fn run_npy(
     })
 }
 
-/// What [`bench`] measured: one window of `pairs` pairs at `width x height`.
+/// What [`bench()`] measured: one window of `pairs` pairs at `width x height`.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct BenchReport {
     /// Frame width.
