@@ -560,6 +560,12 @@ pub fn preset_file(c: &Calibration, base_name: &str, source: &str) -> Result<Str
         c.whole.tf1,
         c.whole.count_ratio,
     );
+    if let Some(f) = &c.flicker {
+        text.push_str(&format!(
+            "# flicker found: {:.2} Hz (phase lock {:.2} over {} ON events at still pixels)\n",
+            f.hz, f.lock, f.events
+        ));
+    }
     for h in &c.held_out {
         text.push_str(&format!(
             "# fitted on the {} half, scored on the other: TF1 {:.3} (ratio {:.3}); {base_name} {:.3} ({:.3}); ideal {:.3} ({:.3})\n",
