@@ -434,7 +434,7 @@ evt = 3
         sensor.threshold_on = 0.41;
         std::fs::write(dir.join("sensor.toml"), toml::to_string(&sensor).unwrap()).unwrap();
         let c = Config::parse(
-            "[stage1]\npreset_file = \"sensor.toml\"\n[stage1.physics]\nleak_hz = 0.5\n",
+            "[stage1]\npreset_file = \"sensor.toml\"\n[stage1.physics]\nleak_hz = 0.5\nlight = \"exposure\"\nflicker_hz = 120\nflicker_depth = 0.2\n",
             &dir.join("v2ce.toml"),
         )
         .unwrap();
@@ -443,6 +443,8 @@ evt = 3
         assert_eq!(got.cutoff_hz, sensor.cutoff_hz);
         // Overrides still apply on top.
         assert_eq!(got.leak_hz, 0.5);
+        assert_eq!(got.light, crate::stage1::LightModel::Exposure);
+        assert_eq!((got.flicker_hz, got.flicker_depth), (120.0, 0.2));
         assert!(c.stage1.preset_name().contains("sensor.toml"));
         // A bad file is an error naming it.
         std::fs::write(dir.join("bad.toml"), "threshold_on = -1\n").unwrap();
