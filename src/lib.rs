@@ -11,6 +11,7 @@ pub mod capture;
 pub mod config;
 pub mod convert;
 pub mod daemon;
+pub mod dataset;
 pub mod error;
 pub mod eval;
 pub mod event;

@@ -54,6 +54,89 @@ enum Command {
     /// Fit the physics tier to your own sensor from a recording with frames and events, and
     /// write the fitted preset file (for --preset-file).
     Calibrate(CalibrateArgs),
+    /// Write training data for the learned tier: synthetic scenes with simulated ground truth,
+    /// or windows of a recording with frames and events.
+    #[command(subcommand)]
+    Dataset(DatasetCommand),
+}
+
+#[derive(Subcommand)]
+enum DatasetCommand {
+    /// Random scenes rendered at a high rate; ground truth from the physics tier, inputs at
+    /// video rate (README: "Training data").
+    Synthetic(SyntheticArgs),
+    /// Windows of a recording's frames with its real events, from one half of it by time.
+    Recording(DatasetRecordingArgs),
+}
+
+#[derive(Args)]
+struct SyntheticArgs {
+    /// The dataset folder (sequences seq_NNNNN.npz and dataset.json).
+    #[arg(short, long)]
+    out: PathBuf,
+    /// Sequences to write.
+    #[arg(long, default_value_t = 100)]
+    count: usize,
+    /// Seed: the same seed and settings give the same dataset.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Frame size.
+    #[arg(long, value_name = "WxH", default_value = "160x120")]
+    size: String,
+    /// Frame intervals per sequence.
+    #[arg(long, default_value_t = 16)]
+    pairs: usize,
+    /// Frame rate of the inputs: one value or a range LO..HI drawn per sequence.
+    #[arg(long, default_value = "25..60")]
+    fps: String,
+    /// The ground truth is simulated at least this often, Hz.
+    #[arg(long, default_value_t = 1000.0)]
+    rate: f64,
+    /// Sensor noise in the ground truth: on, off, mixed (half of the sequences).
+    #[arg(long, value_enum, default_value_t = v2ce::dataset::NoiseMode::Mixed)]
+    noise: v2ce::dataset::NoiseMode,
+    /// The ground-truth sensor preset: davis346, dvxplorer, ideal.
+    #[arg(long, default_value = "davis346")]
+    preset: String,
+    /// A preset file (as `v2ce calibrate` writes) instead of --preset.
+    #[arg(long, conflicts_with = "preset")]
+    preset_file: Option<PathBuf>,
+    /// A folder of natural images (PNG, JPEG) used as textures beside procedural ones.
+    #[arg(long)]
+    images: Option<PathBuf>,
+    /// Largest read noise of the input frames, 8-bit steps.
+    #[arg(long, default_value_t = 1.5)]
+    input_noise: f64,
+    /// Threads (0: one per core).
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+}
+
+#[derive(Args)]
+struct DatasetRecordingArgs {
+    /// The recording: an .aedat4 with events and APS frames, or an event file whose frames
+    /// come from --frames.
+    #[arg(long)]
+    real: PathBuf,
+    /// The frames, when the recording has none in it (a video, an image folder, an IJRR
+    /// images.txt), on the events' time base.
+    #[arg(long)]
+    frames: Option<PathBuf>,
+    /// The dataset folder.
+    #[arg(short, long)]
+    out: PathBuf,
+    /// Which frame intervals: first (half, by time), second, all.
+    #[arg(long, value_enum, default_value_t = v2ce::dataset::Split::All)]
+    split: v2ce::dataset::Split,
+    /// Frame intervals per sequence.
+    #[arg(long, default_value_t = 16)]
+    pairs: usize,
+    /// How --frames' image values relate to the light (as convert's --color).
+    #[arg(long, value_enum, default_value_t = v2ce::frame::images::ColorSpace::Auto)]
+    color: v2ce::frame::images::ColorSpace,
+    /// Use at most this many frames (they are held in memory).
+    #[arg(long, default_value_t = 3000)]
+    max_frames: usize,
 }
 
 #[derive(Args)]
@@ -613,6 +696,8 @@ fn main() -> ExitCode {
         Command::Model(ModelCommand::Run(args)) => model_run(args),
         Command::Model(ModelCommand::Bench(args)) => model_bench(args),
         Command::Calibrate(args) => calibrate(args),
+        Command::Dataset(DatasetCommand::Synthetic(args)) => dataset_synthetic(args),
+        Command::Dataset(DatasetCommand::Recording(args)) => dataset_recording(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -1012,35 +1097,14 @@ fn listen(args: ListenArgs) -> Result<()> {
 }
 
 fn calibrate(args: CalibrateArgs) -> Result<()> {
-    use v2ce::frame::FrameSource;
     check_output(&args.output, args.force)?;
     let base = v2ce::stage1::Preset::from_name(&args.preset)?;
-    let real = format::read_events(&args.real)?;
-    let options = v2ce::frame::SourceOptions {
-        fps: None,
-        color: args.color,
-    };
-    let frames_path = args.frames.as_deref().unwrap_or(&args.real);
-    let mut source: Box<dyn FrameSource> = v2ce::frame::open(frames_path, &options)?;
-    if source.size() != (real.width, real.height) {
-        return Err(Error::invalid(
-            "calibrate",
-            format!(
-                "frames of {} x {} for events of a {} x {} sensor",
-                source.size().0,
-                source.size().1,
-                real.width,
-                real.height
-            ),
-        ));
-    }
-    let mut frames = Vec::new();
-    while frames.len() < args.max_frames.max(5) {
-        match source.next_frame()? {
-            Some(f) => frames.push(f),
-            None => break,
-        }
-    }
+    let (real, frames) = load_recording(
+        &args.real,
+        args.frames.as_deref(),
+        args.color,
+        args.max_frames.max(5),
+    )?;
     let rec = v2ce::calibrate::Recording {
         frames: &frames,
         events: real.events.events(),
@@ -1062,6 +1126,134 @@ fn calibrate(args: CalibrateArgs) -> Result<()> {
         );
         eprintln!("v2ce: wrote {}", args.output.display());
     }
+    Ok(())
+}
+
+/// A recording's events and up to `max_frames` of its frames (from `frames`, or the
+/// recording itself), checked to be of one size.
+fn load_recording(
+    real: &Path,
+    frames: Option<&Path>,
+    color: v2ce::frame::images::ColorSpace,
+    max_frames: usize,
+) -> Result<(format::Recording, Vec<v2ce::frame::Frame>)> {
+    use v2ce::frame::FrameSource;
+    let events = format::read_events(real)?;
+    let options = v2ce::frame::SourceOptions { fps: None, color };
+    let frames_path = frames.unwrap_or(real);
+    let mut source: Box<dyn FrameSource> = v2ce::frame::open(frames_path, &options)?;
+    if source.size() != (events.width, events.height) {
+        return Err(Error::invalid(
+            "recording",
+            format!(
+                "frames of {} x {} for events of a {} x {} sensor",
+                source.size().0,
+                source.size().1,
+                events.width,
+                events.height
+            ),
+        ));
+    }
+    let mut out = Vec::new();
+    while out.len() < max_frames {
+        match source.next_frame()? {
+            Some(f) => out.push(f),
+            None => break,
+        }
+    }
+    Ok((events, out))
+}
+
+fn dataset_synthetic(args: SyntheticArgs) -> Result<()> {
+    let (w, h) = parse_size(&args.size)?;
+    let fps = match args.fps.split_once("..") {
+        Some((lo, hi)) => (
+            lo.trim()
+                .parse::<f64>()
+                .map_err(|_| Error::invalid("--fps", args.fps.clone()))?,
+            hi.trim()
+                .parse::<f64>()
+                .map_err(|_| Error::invalid("--fps", args.fps.clone()))?,
+        ),
+        None => {
+            let f = args
+                .fps
+                .trim()
+                .parse::<f64>()
+                .map_err(|_| Error::invalid("--fps", args.fps.clone()))?;
+            (f, f)
+        }
+    };
+    let sensor = match &args.preset_file {
+        Some(f) => {
+            let mut s1 = v2ce::stage1::Stage1Config::default();
+            s1.load_preset_file(f)?;
+            s1.physics_config()
+        }
+        None => v2ce::stage1::Preset::from_name(&args.preset)?.config(),
+    };
+    let images = match &args.images {
+        Some(dir) => v2ce::dataset::load_images(dir)?,
+        None => Vec::new(),
+    };
+    let cfg = v2ce::dataset::SyntheticConfig {
+        size: (w, h),
+        pairs: args.pairs,
+        fps,
+        rate_hz: args.rate,
+        sensor,
+        noise: args.noise,
+        input_noise: args.input_noise,
+        pace: Default::default(),
+    };
+    let threads = if args.threads == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        args.threads
+    };
+    let started = std::time::Instant::now();
+    let m =
+        v2ce::dataset::write_synthetic(&args.out, &cfg, args.seed, args.count, &images, threads)?;
+    let events: u64 = m.sequences.iter().map(|s| s.events).sum();
+    eprintln!(
+        "v2ce: {} sequences of {} intervals at {} x {} ({} natural images), {} events, in {:.1} s: {}",
+        m.sequences.len(),
+        m.pairs,
+        w,
+        h,
+        images.len(),
+        events,
+        started.elapsed().as_secs_f64(),
+        args.out.display()
+    );
+    Ok(())
+}
+
+fn dataset_recording(args: DatasetRecordingArgs) -> Result<()> {
+    let (real, frames) = load_recording(
+        &args.real,
+        args.frames.as_deref(),
+        args.color,
+        args.max_frames,
+    )?;
+    let m = v2ce::dataset::write_recording(
+        &args.out,
+        &frames,
+        real.events.events(),
+        args.pairs,
+        args.split,
+        &args.real.display().to_string(),
+    )?;
+    let events: u64 = m.sequences.iter().map(|s| s.events).sum();
+    eprintln!(
+        "v2ce: {} sequences of {} intervals at {} x {}, {} real events: {}",
+        m.sequences.len(),
+        m.pairs,
+        m.size.0,
+        m.size.1,
+        events,
+        args.out.display()
+    );
     Ok(())
 }
 

@@ -30,7 +30,13 @@ fn bad(message: impl Into<String>) -> Error {
 
 /// The `.npy` header (format 1.0, padded to a multiple of 64) for `n` records.
 fn npy_header(n: u64) -> Vec<u8> {
-    let dict = format!("{{'descr': {DESCR}, 'fortran_order': False, 'shape': ({n},), }}");
+    header_with(DESCR, &format!("({n},)"))
+}
+
+/// A `.npy` 1.0 header for an array of type `descr` (NumPy's spelling) and `shape` (a Python
+/// tuple), padded to a multiple of 64 bytes.
+fn header_with(descr: &str, shape: &str) -> Vec<u8> {
+    let dict = format!("{{'descr': {descr}, 'fortran_order': False, 'shape': {shape}, }}");
     let unpadded = 10 + dict.len() + 1;
     let total = unpadded.div_ceil(64) * 64;
     let mut h = b"\x93NUMPY\x01\x00".to_vec();
@@ -39,6 +45,56 @@ fn npy_header(n: u64) -> Vec<u8> {
     h.resize(total - 1, b' ');
     h.push(b'\n');
     h
+}
+
+/// One array of an archive written by [`write_arrays`].
+pub struct Array<'a> {
+    /// Its name (the entry is `name.npy`; `np.load(f)[name]` reads it).
+    pub name: &'a str,
+    /// NumPy's type string: `'|u1'`, `'<f4'`, `'<i8'`, ...
+    pub descr: &'a str,
+    /// Its shape, C order.
+    pub shape: &'a [usize],
+    /// Its elements, little-endian, C order.
+    pub data: &'a [u8],
+}
+
+/// Writes `arrays` as an `.npz` at `path` (deflated when `compressed`, as
+/// `np.savez_compressed` does): to a temporary name beside it, renamed when complete.
+pub fn write_arrays(path: &Path, arrays: &[Array], compressed: bool) -> Result<()> {
+    let tmp = path.with_extension("npz.partial");
+    let file = std::fs::File::create(&tmp).map_err(|e| Error::io(&tmp, e))?;
+    let mut zip = zip::ZipWriter::new(BufWriter::new(file));
+    let method = if compressed {
+        zip::CompressionMethod::Deflated
+    } else {
+        zip::CompressionMethod::Stored
+    };
+    let zerr = |e: zip::result::ZipError| bad(e.to_string());
+    for a in arrays {
+        let shape = match a.shape {
+            [n] => format!("({n},)"),
+            dims => format!(
+                "({})",
+                dims.iter()
+                    .map(|d| d.to_string())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
+        };
+        let options = zip::write::SimpleFileOptions::default()
+            .compression_method(method)
+            .large_file(a.data.len() as u64 > u32::MAX as u64 / 2);
+        zip.start_file(format!("{}.npy", a.name), options)
+            .map_err(zerr)?;
+        zip.write_all(&header_with(a.descr, &shape))
+            .and_then(|_| zip.write_all(a.data))
+            .map_err(|e| Error::io(&tmp, e))?;
+    }
+    let mut out = zip.finish().map_err(zerr)?;
+    out.flush().map_err(|e| Error::io(&tmp, e))?;
+    drop(out);
+    std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
 }
 
 /// Writes the toolbox's `.npz` to `out` (see the module docs).
