@@ -149,7 +149,15 @@ pub struct ImportReport {
 /// never leaves a file that looks complete.
 pub fn import(checkpoint: &Path, output: &Path, options: &ImportOptions) -> Result<ImportReport> {
     let mut archive = torch::TorchArchive::open(checkpoint)?;
-    let arch = Architecture::v2ce();
+    // The released network, or a narrower or shallower one of its family (a model trained by
+    // `train/`): read off the checkpoint's shapes, then checked key by key.
+    let listed: Vec<(&str, &[usize])> = archive
+        .entries()
+        .iter()
+        .map(|e| (e.name.as_str(), e.shape.as_slice()))
+        .collect();
+    let arch = Architecture::infer(&listed).unwrap_or_else(Architecture::v2ce);
+    drop(listed);
     let selection = arch.select(checkpoint, archive.entries())?;
     let keys_read = archive.entries().len();
     let mut source = ArchiveSource {

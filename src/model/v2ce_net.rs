@@ -321,6 +321,44 @@ impl Architecture {
         }
     }
 
+    /// The member of this family a state dict holds (`(name, shape)` per entry; Lightning's
+    /// `model.` prefix allowed): base channels and inputs from the head's weight, outputs from
+    /// the prediction's, encoders and bottleneck blocks counted by their indices. `None` when
+    /// the head or the prediction weight is missing or not 5-D (the full check then names what
+    /// is wrong against [`Architecture::v2ce`]).
+    pub fn infer(entries: &[(&str, &[usize])]) -> Option<Self> {
+        let find = |key: &str| {
+            entries
+                .iter()
+                .find(|(n, _)| n.strip_prefix("model.").unwrap_or(n) == key)
+                .map(|(_, s)| *s)
+        };
+        let head = find("UNet.head.conv3d.weight")?;
+        let pred = find("UNet.pred.conv3d.weight")?;
+        if head.len() != 5 || pred.len() != 5 || head[0] == 0 || head[0] != pred[1] {
+            return None;
+        }
+        let count = |group: &str| {
+            entries
+                .iter()
+                .filter_map(|(n, _)| {
+                    let n = n.strip_prefix("model.").unwrap_or(n);
+                    n.strip_prefix(group)?
+                        .split('.')
+                        .next()?
+                        .parse::<usize>()
+                        .ok()
+                })
+                .max()
+                .map_or(0, |i| i + 1)
+        };
+        let (encoders, resblocks) = (count("UNet.encoders."), count("UNet.resblocks."));
+        if encoders == 0 || encoders > 8 || resblocks > 16 {
+            return None;
+        }
+        Some(Self::unet(head[1], pred[0], head[0], encoders, resblocks))
+    }
+
     /// Every residual block, in registration order.
     pub fn blocks(&self) -> impl Iterator<Item = &ResidualBlock> {
         self.encoders
@@ -1138,6 +1176,38 @@ pub fn largest_singular_value(w: &[f32], rows: usize, cols: usize) -> f64 {
 
 #[cfg(test)]
 mod tests {
+
+    /// The family member is read back off its own state dict, with or without Lightning's
+    /// prefix; a dict without a head is not guessed at.
+    #[test]
+    fn the_architecture_is_inferred_from_a_state_dict() {
+        for arch in [
+            Architecture::v2ce(),
+            Architecture::unet(2, 20, 8, 4, 2),
+            Architecture::unet(2, 20, 16, 3, 1),
+        ] {
+            let keys = arch.state_dict_keys();
+            let listed: Vec<(&str, &[usize])> = keys
+                .iter()
+                .map(|k| (k.name.as_str(), k.shape.as_slice()))
+                .collect();
+            assert_eq!(Architecture::infer(&listed), Some(arch.clone()));
+            let prefixed: Vec<(String, Vec<usize>)> = keys
+                .iter()
+                .map(|k| (format!("model.{}", k.name), k.shape.clone()))
+                .collect();
+            let listed: Vec<(&str, &[usize])> = prefixed
+                .iter()
+                .map(|(n, s)| (n.as_str(), s.as_slice()))
+                .collect();
+            assert_eq!(Architecture::infer(&listed), Some(arch));
+        }
+        assert_eq!(
+            Architecture::infer(&[("UNet.pred.conv3d.weight", &[20, 32, 1, 1, 1])]),
+            None
+        );
+    }
+
     use super::*;
 
     #[test]
