@@ -24,7 +24,7 @@ Quirks reproduced on purpose (spec 3.2):
       therefore stateful: reload (or call :func:`reset_spectral_state`) before every
       forward that must reproduce "the first call after loading".
 
-Only what inference needs is here (no training code, no weight initialisation).
+Only what inference needs is here; training (initialisation, losses) is in ``v2ce_train``.
 """
 
 from __future__ import annotations
@@ -224,11 +224,15 @@ class UNet3D(nn.Module):
 
 
 class V2ce3d(nn.Module):
-    """Top level: (B, L, 2, H, W) normalized frame pairs -> (B, L, 20, H, W) voxels."""
+    """Top level: (B, L, 2, H, W) normalized frame pairs -> (B, L, 20, H, W) voxels.
 
-    def __init__(self):
+    ``base``, ``encoders`` and ``resblocks`` choose a narrower or shallower member of the
+    family (the trainer's small models); the defaults are the released network."""
+
+    def __init__(self, base: int = 32, encoders: int = 4, resblocks: int = 2):
         super().__init__()
-        self.UNet = UNet3D()
+        self.UNet = UNet3D(base_num_channels=base, num_encoders=encoders,
+                           num_residual_blocks=resblocks)
 
     def forward(self, x: torch.Tensor, trace: Dict[str, float] | None = None) -> torch.Tensor:
         y = self.UNet(x.permute(0, 2, 1, 3, 4), trace=trace)

@@ -12,23 +12,24 @@ MEAN, STD = 0.153, 0.165
 
 
 class Sequences:
-    """Every sequence of one or more dataset folders, held in memory."""
+    """Every sequence of one or more dataset folders, read from disk when drawn (a dataset of
+    hundreds of sequences does not fit in memory)."""
 
     def __init__(self, folders):
-        self.frames, self.voxels, self.names = [], [], []
+        self.paths = []
         for folder in folders:
             with open(os.path.join(folder, "dataset.json")) as f:
                 manifest = json.load(f)
-            for s in manifest["sequences"]:
-                z = np.load(os.path.join(folder, s["file"]))
-                self.frames.append(z["frames"])
-                self.voxels.append(z["voxels"])
-                self.names.append(os.path.join(folder, s["file"]))
-        if not self.frames:
+            self.paths += [os.path.join(folder, s["file"]) for s in manifest["sequences"]]
+        if not self.paths:
             raise ValueError(f"no sequences in {folders}")
 
+    def load(self, k):
+        z = np.load(self.paths[k])
+        return z["frames"], z["voxels"]
+
     def __len__(self):
-        return len(self.frames)
+        return len(self.paths)
 
     @staticmethod
     def inputs(frames):
@@ -41,8 +42,7 @@ class Sequences:
         crop of size `crop` (h, w) and a random window of `window` intervals."""
         xs, ys = [], []
         for _ in range(batch):
-            k = int(rng.integers(len(self.frames)))
-            f, v = self.frames[k], self.voxels[k]
+            f, v = self.load(int(rng.integers(len(self.paths))))
             pairs, h, w = v.shape[0], v.shape[2], v.shape[3]
             l = pairs if window is None else min(window, pairs)
             t0 = int(rng.integers(pairs - l + 1))
@@ -54,7 +54,5 @@ class Sequences:
 
     def whole(self, k):
         """Sequence `k` whole: inputs (1, L, 2, H, W) and voxels (1, L, 20, H, W)."""
-        return (
-            torch.from_numpy(self.inputs(self.frames[k])[None]),
-            torch.from_numpy(np.ascontiguousarray(self.voxels[k][None])),
-        )
+        f, v = self.load(k)
+        return torch.from_numpy(self.inputs(f)[None]), torch.from_numpy(np.ascontiguousarray(v[None]))

@@ -21,13 +21,18 @@ import torch
 
 from . import losses
 from .data import Sequences
-from .model import V2ce3d, parameter_count, toolbox_state_dict
+from .model import generator, parameter_count, toolbox_state_dict
 
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", action="append", required=True, help="a dataset folder (repeatable)")
-    p.add_argument("--val", action="append", default=[], help="a validation dataset folder")
+    p.add_argument(
+        "--val",
+        action="append",
+        default=[],
+        help="a validation dataset folder (repeatable: each is scored and logged; the first picks best.pt)",
+    )
     p.add_argument("--out", required=True, help="the run's folder")
     p.add_argument("--base", type=int, default=32, help="channels after the head (32: V2CE)")
     p.add_argument("--encoders", type=int, default=4)
@@ -81,8 +86,8 @@ def main(argv=None):
     window = a.window or None
 
     data = Sequences(a.data)
-    val = Sequences(a.val) if a.val else None
-    model = V2ce3d(a.base, a.encoders, a.resblocks).to(device)
+    vals = [(os.path.basename(os.path.normpath(v)), Sequences([v])) for v in a.val]
+    model = generator(a.base, a.encoders, a.resblocks).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=a.lr, betas=(0.9, 0.999), weight_decay=1e-5)
     adversarial = None if a.no_adv else losses.Adversarial(a.ndf, 3, device)
     step, best = 0, -1.0
@@ -114,7 +119,7 @@ def main(argv=None):
     val_file = open(os.path.join(a.out, "val.csv"), "a", newline="")
     val_log = csv.writer(val_file)
     if step == 0:
-        val_log.writerow(["step", "tf1", "tpf1", "rf1", "count_ratio"])
+        val_log.writerow(["step", "set", "tf1", "tpf1", "rf1", "count_ratio"])
     started = time.time()
     model.train()
     while step < a.steps:
@@ -133,14 +138,15 @@ def main(argv=None):
         )
         if not np.isfinite(float(total.detach())):
             raise SystemExit(f"v2ce_train: the loss is {float(total.detach())} at step {step}")
-        if val is not None and (step % a.val_every == 0 or step == a.steps):
-            s = validate(model, val, device)
-            val_log.writerow([step] + [f"{s[k]:.5f}" for k in ("tf1", "tpf1", "rf1", "count_ratio")])
+        if vals and (step % a.val_every == 0 or step == a.steps):
+            for i, (name, val) in enumerate(vals):
+                s = validate(model, val, device)
+                val_log.writerow([step, name] + [f"{s[k]:.5f}" for k in ("tf1", "tpf1", "rf1", "count_ratio")])
+                print(f"step {step}: loss {float(total.detach()):.4g}, {name} TF1 {s['tf1']:.4f} ratio {s['count_ratio']:.3f}", flush=True)
+                if i == 0 and s["tf1"] > best:
+                    best = s["tf1"]
+                    torch.save(toolbox_state_dict(model), os.path.join(a.out, "best.pt"))
             val_file.flush()
-            print(f"step {step}: loss {float(total.detach()):.4g}, val TF1 {s['tf1']:.4f} ratio {s['count_ratio']:.3f}", flush=True)
-            if s["tf1"] > best:
-                best = s["tf1"]
-                torch.save(toolbox_state_dict(model), os.path.join(a.out, "best.pt"))
         if step % a.ckpt_every == 0 or step == a.steps:
             loss_file.flush()
             torch.save(
@@ -157,7 +163,7 @@ def main(argv=None):
                 last + ".partial",
             )
             os.replace(last + ".partial", last)
-    if val is None:
+    if not vals:
         torch.save(toolbox_state_dict(model), os.path.join(a.out, "best.pt"))
     loss_file.close()
     val_file.close()
