@@ -712,3 +712,100 @@ fn every_window_setting_hands_on_each_interval_once_in_order() {
     );
     assert!(err.contains("fixed number of pairs of 16"), "{err}");
 }
+
+/// Stability at the extremes: black, saturated and still textured frames give no voxels and no
+/// events whatever the model outputs there (a model that passes its input through, as `Relu`
+/// does, answers a white frame with large values everywhere), and a single flickering pixel
+/// gives voxels only in the tiles around it. Every voxel is finite and not negative. Without
+/// the gate, the white frames would fire everywhere.
+#[test]
+fn where_nothing_changes_the_learned_tier_gives_nothing() {
+    ort_or_skip!("where_nothing_changes_the_learned_tier_gives_nothing");
+    let dir = common::temp_dir("learned-extremes");
+    let model = dir.join("relu.onnx");
+    tiny_model(&model, "Relu", Tiny::V2ce);
+    let (w, h) = (64u32, 48u32);
+    let texture = |x: u32, y: u32| ((x * 37 + y * 11) % 200 + 30) as u8;
+    let scenes: [(&str, Box<dyn Fn(u32, u32, u32) -> u8>); 4] = [
+        ("black", Box::new(|_, _, _| 0)),
+        ("white", Box::new(|_, _, _| 255)),
+        ("still", Box::new(move |x, y, _| texture(x, y))),
+        (
+            "flicker",
+            Box::new(move |x, y, i| {
+                if (x, y) == (30, 20) {
+                    if i % 2 == 0 {
+                        0
+                    } else {
+                        255
+                    }
+                } else {
+                    texture(x, y)
+                }
+            }),
+        ),
+    ];
+    let convert = |frames: &Path, tag: &str, config: Option<&Path>| -> (ArrayD<f32>, usize) {
+        let v = dir.join(format!("{tag}.npy"));
+        let ev = dir.join(format!("{tag}.csv"));
+        let mut cmd = v2ce();
+        cmd.arg("convert")
+            .arg(frames)
+            .args(["--fps", "25", "--model"]);
+        cmd.arg(&model)
+            .arg("--write-voxels")
+            .arg(&v)
+            .arg("-o")
+            .arg(&ev);
+        if let Some(c) = config {
+            cmd.arg("--config").arg(c);
+        }
+        ok(&mut cmd);
+        let events = std::fs::read_to_string(&ev).unwrap().lines().count() - 1;
+        (ndarray_npy::read_npy(&v).unwrap(), events)
+    };
+    for (name, scene) in &scenes {
+        let frames = dir.join(name);
+        std::fs::create_dir_all(&frames).unwrap();
+        for i in 0..6 {
+            image::GrayImage::from_fn(w, h, |x, y| image::Luma([scene(x, y, i)]))
+                .save(frames.join(format!("f{i}.png")))
+                .unwrap();
+        }
+        let (voxels, events) = convert(&frames, name, None);
+        assert_eq!(voxels.shape(), &[5, 20, h as usize, w as usize], "{name}");
+        assert!(voxels.iter().all(|v| v.is_finite() && *v >= 0.0), "{name}");
+        if *name == "flicker" {
+            // The pixel's tile (1, 1) and one tile around it: columns 0..48, rows 0..48.
+            let mut inside = 0;
+            for ((_, _, y, x), &v) in voxels
+                .view()
+                .into_dimensionality::<ndarray::Ix4>()
+                .unwrap()
+                .indexed_iter()
+            {
+                if v > 0.0 {
+                    assert!(
+                        x < 48 && y < 48,
+                        "voxel at ({x}, {y}), far from the flicker"
+                    );
+                    inside += 1;
+                }
+            }
+            assert!(inside > 0 && events > 0, "the flicker left no trace");
+        } else {
+            assert!(
+                voxels.iter().all(|&v| v == 0.0),
+                "{name}: voxels where nothing moved"
+            );
+            assert_eq!(events, 0, "{name}: events where nothing moved");
+        }
+    }
+    let off = dir.join("gate-off.toml");
+    std::fs::write(&off, "[stage1.learned]\ngate = false\n").unwrap();
+    let (voxels, events) = convert(&dir.join("white"), "white-ungated", Some(&off));
+    assert!(
+        voxels.iter().any(|&v| v > 0.0) && events > 0,
+        "the gate made no difference"
+    );
+}

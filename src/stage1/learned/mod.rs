@@ -14,6 +14,7 @@
 //! Each interval's output `(2*C, H, W)` becomes a [`VoxelGrid`] for Stage 2 to re-time. Values
 //! that are NaN or infinite are counted here and repaired (counted again) by the sampler.
 
+pub mod activity;
 pub mod preprocess;
 pub mod raw;
 pub mod runtime;
@@ -29,6 +30,7 @@ use crate::frame::Frame;
 use crate::interval::Interval;
 use crate::voxel::VoxelGrid;
 
+use activity::Activity;
 pub use preprocess::{Geometry, Layout, Tile};
 pub use runtime::{Device, Network, RuntimeOptions};
 
@@ -78,6 +80,14 @@ pub struct LearnedConfig {
     pub ort_library: PathBuf,
     /// Keep ONNX Runtime's CPU memory arena (off: half the peak memory, measured).
     pub cpu_arena: bool,
+    /// Keep the network's output only where the scene moved (see [`activity`]): tiles whose
+    /// pixels did not change between a pair's frames get no events, and a window where nothing
+    /// changed is not run.
+    pub gate: bool,
+    /// A pixel moved when its gray value (0 to 1) changed by more than this.
+    pub gate_threshold: f32,
+    /// Active tiles are grown by this many tiles of 16 pixels.
+    pub gate_margin: usize,
 }
 
 impl Default for LearnedConfig {
@@ -94,6 +104,9 @@ impl Default for LearnedConfig {
             input: InputEncoding::Auto,
             ort_library: PathBuf::new(),
             cpu_arena: false,
+            gate: true,
+            gate_threshold: 0.0,
+            gate_margin: 1,
         }
     }
 }
@@ -105,6 +118,18 @@ impl LearnedConfig {
             return Err(Error::invalid(
                 "stage1.learned.window",
                 format!("{} intervals; need 1 to 256", self.window),
+            ));
+        }
+        if !(self.gate_threshold.is_finite() && (0.0..1.0).contains(&self.gate_threshold)) {
+            return Err(Error::invalid(
+                "stage1.learned.gate_threshold",
+                format!("{}; need 0 to 1 (a gray-value change)", self.gate_threshold),
+            ));
+        }
+        if self.gate_margin > 64 {
+            return Err(Error::invalid(
+                "stage1.learned.gate_margin",
+                format!("{} tiles; need 0 to 64", self.gate_margin),
             ));
         }
         if self.stride > self.window {
@@ -153,6 +178,10 @@ pub struct LearnedStats {
     pub intervals: u64,
     /// Output values that were NaN or infinite.
     pub nonfinite: u64,
+    /// Windows not run because nothing changed in the intervals they would keep.
+    pub windows_skipped: u64,
+    /// Tiles of kept intervals whose outputs were dropped because nothing changed there.
+    pub tiles_gated: u64,
     /// Median time of one window's inference, ms.
     pub window_ms_p50: f64,
     /// Longest, ms.
@@ -379,8 +408,35 @@ impl LearnedStage1 {
         let (ow, oh) = (ow as usize, oh as usize);
         let channels = 2 * self.bins;
         let mut voxels = vec![0f32; run.keep * channels * oh * ow];
+        let first = frames.len() - 1 - run.keep;
+        let activity: Vec<Activity> = if self.config.gate {
+            let (plane_w, offset) = self.layout.plane_columns();
+            frames[first..]
+                .windows(2)
+                .map(|p| {
+                    Activity::of_pair(
+                        &p[0].1,
+                        &p[1].1,
+                        plane_w,
+                        offset,
+                        (ow, oh),
+                        self.config.gate_threshold,
+                        self.config.gate_margin,
+                    )
+                })
+                .collect()
+        } else {
+            Vec::new()
+        };
+        let still = self.config.gate && !activity.iter().any(Activity::any);
         let started = Instant::now();
-        for tile in self.layout.tiles() {
+        let tiles = if still {
+            self.stats.windows_skipped += 1;
+            Vec::new()
+        } else {
+            self.layout.tiles()
+        };
+        for tile in tiles {
             self.input.clear();
             let padded = std::iter::repeat_n(frames[0], pad).chain(frames.iter().copied());
             let padded: Vec<&(i64, Vec<f32>)> = padded.collect();
@@ -418,13 +474,18 @@ impl LearnedStage1 {
                 })?;
             self.stats.pairs_run += pairs as u64;
         }
-        let us = started.elapsed().as_micros().clamp(1, 3_600_000_000) as u64;
-        // Within the bounds just clamped to: recording cannot fail.
-        let _ = self.window_us.record(us);
-        self.stats.windows += 1;
+        if !still {
+            let us = started.elapsed().as_micros().clamp(1, 3_600_000_000) as u64;
+            // Within the bounds just clamped to: recording cannot fail.
+            let _ = self.window_us.record(us);
+            self.stats.windows += 1;
+        }
         self.stats.nonfinite += voxels.iter().filter(|v| !v.is_finite()).count() as u64;
         let size = channels * oh * ow;
-        let first = frames.len() - 1 - run.keep;
+        for (k, a) in activity.iter().enumerate() {
+            a.clear_inactive(&mut voxels[k * size..(k + 1) * size], (ow, oh));
+            self.stats.tiles_gated += a.inactive() as u64;
+        }
         for k in 0..run.keep {
             let (t0, t1) = (frames[first + k].0, frames[first + k + 1].0);
             let interval = Interval::new(t0, t1)?;

@@ -142,6 +142,11 @@ impl Layout {
         (self.output.0 as u16, self.output.1 as u16)
     }
 
+    /// Width of the resized plane, and the plane column of the output's first column.
+    pub fn plane_columns(&self) -> (usize, usize) {
+        (self.resized.0, self.crop_x)
+    }
+
     /// Width and height of one network input plane.
     pub fn net(&self) -> (usize, usize) {
         self.net
