@@ -726,7 +726,8 @@ fn where_nothing_changes_the_learned_tier_gives_nothing() {
     tiny_model(&model, "Relu", Tiny::V2ce);
     let (w, h) = (64u32, 48u32);
     let texture = |x: u32, y: u32| ((x * 37 + y * 11) % 200 + 30) as u8;
-    let scenes: [(&str, Box<dyn Fn(u32, u32, u32) -> u8>); 4] = [
+    type Scene = Box<dyn Fn(u32, u32, u32) -> u8>;
+    let scenes: [(&str, Scene); 4] = [
         ("black", Box::new(|_, _, _| 0)),
         ("white", Box::new(|_, _, _| 255)),
         ("still", Box::new(move |x, y, _| texture(x, y))),
