@@ -641,6 +641,10 @@ struct Stage1Args {
     /// Without --sim: the seed of mismatch and noise.
     #[arg(long, default_value_t = 0, conflicts_with = "sim")]
     seed: u64,
+    /// Score only these frame intervals: first (half, by time), second, all (as `v2ce dataset
+    /// recording --split`, so a model is scored on the half it did not train on).
+    #[arg(long, value_enum, default_value_t = v2ce::dataset::Split::All)]
+    split: v2ce::dataset::Split,
     /// Print the scores as one JSON object.
     #[arg(long)]
     json: bool,
@@ -1359,6 +1363,13 @@ fn model_run(args: ModelRunArgs) -> Result<()> {
 fn eval_stage1(args: Stage1Args) -> Result<()> {
     let (real, intervals) =
         load_events_and_intervals(&args.real, args.frames.as_deref(), args.fps)?;
+    let intervals = intervals[args.split.range(intervals.len())].to_vec();
+    if intervals.is_empty() {
+        return Err(Error::invalid(
+            "--split",
+            format!("no frame intervals in the {:?} part", args.split),
+        ));
+    }
     let sim = match &args.sim {
         Some(path) => format::read_events(path)?,
         None => simulate_for_eval(&args, (real.width, real.height))?,

@@ -184,6 +184,29 @@ fn a_recordings_halves_hold_exactly_its_events_in_their_windows() {
             assert_eq!(s["events"].as_u64().unwrap(), n, "{s}");
         }
     }
+    // `eval stage1 --split` scores the same halves: 29 intervals each, all real events once.
+    let mut real_events = 0;
+    for split in ["first", "second"] {
+        let out = v2ce(&[
+            "eval",
+            "stage1",
+            "--real",
+            rec.to_str().unwrap(),
+            "--split",
+            split,
+            "--json",
+        ]);
+        let m: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        assert_eq!(m["intervals"], 29, "{split}");
+        real_events += m["real_events"].as_u64().unwrap();
+    }
+    let inside = real
+        .events
+        .events()
+        .iter()
+        .filter(|e| e.t >= times[0] && e.t < times[58])
+        .count() as u64;
+    assert_eq!(real_events, inside);
     if let Some(py) = common::python() {
         numpy_check(&py, &windows[0].0);
     } else {

@@ -374,6 +374,19 @@ pub enum Split {
     All,
 }
 
+impl Split {
+    /// The indices of `intervals` frame intervals this part covers: the first half (rounded
+    /// down), the rest, or all.
+    pub fn range(self, intervals: usize) -> std::ops::Range<usize> {
+        let half = intervals / 2;
+        match self {
+            Split::First => 0..half,
+            Split::Second => half..intervals,
+            Split::All => 0..intervals,
+        }
+    }
+}
+
 /// Writes windows of `pairs` intervals of a recording's `frames` (in time order) with its real
 /// `events` (sorted) to `dir`, from the intervals of `split`; `source` names the recording in
 /// the manifest.
@@ -389,13 +402,8 @@ pub fn write_recording(
         return Err(Error::invalid("dataset", "the recording has no frames"));
     };
     let size = (first.width, first.height);
-    let intervals = frames.len().saturating_sub(1);
-    let half = intervals / 2;
-    let (lo, hi) = match split {
-        Split::First => (0, half),
-        Split::Second => (half, intervals),
-        Split::All => (0, intervals),
-    };
+    let range = split.range(frames.len().saturating_sub(1));
+    let (lo, hi) = (range.start, range.end);
     if pairs == 0 || hi - lo < pairs {
         return Err(Error::invalid(
             "dataset",
