@@ -438,10 +438,7 @@ impl Fitter<'_> {
         // first, noiseless at the base thresholds, and the noise measured on what is left.
         let mut explained = (0, 0);
         if flicker.is_some() {
-            let mut c = cfg.clone();
-            c.leak_hz = 0.0;
-            c.shot_noise_hz = 0.0;
-            c.hot_pixel_fraction = 0.0;
+            let c = cfg.noiseless();
             (cfg.flicker_depth, explained) = self.fit_depth(&c, &range, real_still)?;
         }
         let (leak, shot) = self.noise(&range, base, explained);
@@ -657,12 +654,9 @@ mod tests {
         };
         let mut src = SceneSource::new("grating", 48, 32, 40.0, 24, Box::new(scene));
         let frames: Vec<Frame> = std::iter::from_fn(|| src.next_frame().unwrap()).collect();
-        let mut truth = Preset::Davis346.config();
+        let mut truth = Preset::Davis346.config().noiseless();
         truth.threshold_on = 0.40;
         truth.threshold_off = 0.22;
-        truth.leak_hz = 0.0;
-        truth.shot_noise_hz = 0.0;
-        truth.hot_pixel_fraction = 0.0;
         let mut sim = PhysicsSim::new(truth.clone(), 48, 32, 11).unwrap();
         let mut real = Vec::new();
         for f in &frames {
@@ -715,10 +709,7 @@ mod tests {
         };
         let mut src = SceneSource::new("half still", 48, 32, 25.0, 16, Box::new(scene));
         let frames: Vec<Frame> = std::iter::from_fn(|| src.next_frame().unwrap()).collect();
-        let mut truth = Preset::Davis346.config();
-        truth.leak_hz = 0.0;
-        truth.shot_noise_hz = 0.0;
-        truth.hot_pixel_fraction = 0.0;
+        let mut truth = Preset::Davis346.config().noiseless();
         truth.flicker_hz = 100.0;
         truth.flicker_depth = 0.3;
         let real = simulate(&frames, (48, 32), &truth, 11).unwrap();

@@ -414,11 +414,8 @@ fn an_exposure_change_is_not_a_change_of_light() {
         f
     };
     for light in [LightModel::Scene, LightModel::Exposure, LightModel::Frame] {
-        let mut cfg = Preset::Davis346.config();
+        let mut cfg = Preset::Davis346.config().noiseless();
         cfg.light = light;
-        cfg.leak_hz = 0.0;
-        cfg.shot_noise_hz = 0.0;
-        cfg.hot_pixel_fraction = 0.0;
         let frames: Vec<Frame> = (0..10).map(|k| still(k, true)).collect();
         let n = v2ce::calibrate::simulate(&frames, (64, 48), &cfg, 1)
             .unwrap()
@@ -449,10 +446,7 @@ fn flickering_light_fires_every_cycle_on_a_still_scene() {
         std::iter::from_fn(|| src.next_frame().unwrap()).collect()
     };
     let run_with = |depth: f64| {
-        let mut cfg = Preset::Davis346.config();
-        cfg.leak_hz = 0.0;
-        cfg.shot_noise_hz = 0.0;
-        cfg.hot_pixel_fraction = 0.0;
+        let mut cfg = Preset::Davis346.config().noiseless();
         cfg.flicker_hz = 100.0;
         cfg.flicker_depth = depth;
         v2ce::calibrate::simulate(&still, (64, 48), &cfg, 1).unwrap()

@@ -261,12 +261,11 @@ pub fn synthetic_sequence(
     // `m` high-rate steps per frame interval, at least `rate_hz`.
     let m = (cfg.rate_hz / fps).ceil().max(1.0) as usize;
     let step = 1e6 / (fps * m as f64);
-    let mut sensor = cfg.sensor.clone();
-    if !noise {
-        sensor.leak_hz = 0.0;
-        sensor.shot_noise_hz = 0.0;
-        sensor.hot_pixel_fraction = 0.0;
-    }
+    let sensor = if noise {
+        cfg.sensor.clone()
+    } else {
+        cfg.sensor.noiseless()
+    };
     let (w, h) = cfg.size;
     let mut sim = PhysicsSim::new(sensor, w, h, s)?;
     let mut events = Vec::new();

@@ -266,6 +266,16 @@ impl Preset {
 }
 
 impl PhysicsConfig {
+    /// The same sensor without noise: no leak, shot noise or hot pixels.
+    pub fn noiseless(&self) -> Self {
+        PhysicsConfig {
+            leak_hz: 0.0,
+            shot_noise_hz: 0.0,
+            hot_pixel_fraction: 0.0,
+            ..self.clone()
+        }
+    }
+
     /// Checks that every parameter is usable.
     pub fn validate(&self) -> Result<()> {
         let bad = |m: String| Err(Error::invalid("stage1.physics", m));
