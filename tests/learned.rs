@@ -810,3 +810,43 @@ fn where_nothing_changes_the_learned_tier_gives_nothing() {
         "the gate made no difference"
     );
 }
+
+/// `--stage1 learned` without a model runs the small model built into v2ce: finite,
+/// non-negative voxels where a bar moves, nothing on still frames.
+#[test]
+fn the_built_in_model_runs_when_no_model_is_given() {
+    ort_or_skip!("the_built_in_model_runs_when_no_model_is_given");
+    let dir = common::temp_dir("learned-builtin");
+    let (w, h) = (64u32, 48u32);
+    for (name, speed) in [("moving", 6u32), ("still", 0)] {
+        let frames = dir.join(name);
+        std::fs::create_dir_all(&frames).unwrap();
+        for i in 0..6u32 {
+            image::GrayImage::from_fn(w, h, |x, y| {
+                let bar = (x + 64 - (i * speed) % 64) % 64 < 10;
+                image::Luma([if bar { 220 } else { 30 + (y % 7) as u8 }])
+            })
+            .save(frames.join(format!("f{i}.png")))
+            .unwrap();
+        }
+        let v = dir.join(format!("{name}.npy"));
+        let out = v2ce()
+            .arg("convert")
+            .arg(&frames)
+            .args(["--fps", "25", "--stage1", "learned", "--write-voxels"])
+            .arg(&v)
+            .arg("-o")
+            .arg(dir.join(format!("{name}.csv")))
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "{err}");
+        assert!(err.contains("v2ce-small (built in)"), "{err}");
+        let voxels: ArrayD<f32> = ndarray_npy::read_npy(&v).unwrap();
+        assert_eq!(voxels.shape(), &[5, 20, h as usize, w as usize]);
+        assert!(voxels.iter().all(|v| v.is_finite() && *v >= 0.0), "{name}");
+        if name == "still" {
+            assert!(voxels.iter().all(|&v| v == 0.0), "voxels on still frames");
+        }
+    }
+}

@@ -20,7 +20,7 @@ pub mod raw;
 pub mod runtime;
 
 use std::collections::VecDeque;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
@@ -53,11 +53,19 @@ pub enum InputEncoding {
     Linear,
 }
 
+/// The model the learned tier runs when none is configured: `models/v2ce-small.onnx`, built
+/// into the program (its card: `models/v2ce-small.md`).
+pub const BUILTIN_MODEL: &[u8] = include_bytes!("../../../models/v2ce-small.onnx");
+
+/// How the built-in model is named in messages.
+pub const BUILTIN_NAME: &str = "v2ce-small (built in)";
+
 /// The `[stage1.learned]` table.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct LearnedConfig {
-    /// The ONNX model (`v2ce model import` makes one from the official checkpoint).
+    /// The ONNX model (`v2ce model import` makes one from the official checkpoint or a trained
+    /// one); empty: the built-in small model ([`BUILTIN_MODEL`]).
     pub model: PathBuf,
     /// Frame intervals per window (`L`; the network was trained on 16).
     pub window: usize,
@@ -298,13 +306,6 @@ impl LearnedStage1 {
         encoding: SourceEncoding,
     ) -> Result<Self> {
         config.validate()?;
-        if config.model.as_os_str().is_empty() {
-            return Err(Error::invalid(
-                "stage1.learned.model",
-                "the learned tier needs an ONNX model (--model M.onnx; `v2ce model import \
-                 v2ce_3d.pt -o M.onnx` makes one from the official weights)",
-            ));
-        }
         let layout = Layout::new(config.geometry, size, config.height, config.width)?;
         let (nw, nh) = layout.net();
         let (ow, oh) = layout.output();
@@ -325,7 +326,11 @@ impl LearnedStage1 {
                 ));
             }
         }
-        let network = Network::open(&config.model, &config.runtime())?;
+        let network = if config.model.as_os_str().is_empty() {
+            Network::open_bytes(Path::new(BUILTIN_NAME), BUILTIN_MODEL, &config.runtime())?
+        } else {
+            Network::open(&config.model, &config.runtime())?
+        };
         let fixed = network.fixed_sizes();
         let mismatch = |what: &str, fixed: usize, want: usize| {
             Error::invalid(
@@ -550,7 +555,7 @@ impl Stage1 for LearnedStage1 {
     fn describe(&self) -> String {
         format!(
             "learned ({}, L={} stride {}, {} geometry, {})",
-            self.config.model.display(),
+            self.network.path().display(),
             self.config.window,
             self.config.stride(),
             self.config.geometry.name(),

@@ -258,6 +258,19 @@ impl Network {
                 std::io::Error::new(std::io::ErrorKind::NotFound, "no such model file"),
             ));
         }
+        Self::open_from(path, None, options)
+    }
+
+    /// Opens a model held in memory (one built into v2ce), named `name` in messages.
+    pub fn open_bytes(name: &Path, bytes: &[u8], options: &RuntimeOptions) -> Result<Self> {
+        Self::open_from(name, Some(bytes), options)
+    }
+
+    fn open_from(path: &Path, bytes: Option<&[u8]>, options: &RuntimeOptions) -> Result<Self> {
+        let commit = |b: &mut ort::session::builder::SessionBuilder| match bytes {
+            Some(bytes) => b.commit_from_memory(bytes),
+            None => b.commit_from_file(path),
+        };
         let (_, env) = load(options.library.as_deref())?;
         let mut builder = Session::builder(env).map_err(ort_err("session options"))?;
         if options.threads > 0 {
@@ -308,14 +321,14 @@ impl Network {
         let cannot = |e: ort::Error| {
             Error::format(path, format!("ONNX Runtime cannot load this model: {e}"))
         };
-        let session = match builder.commit_from_file(path) {
+        let session = match commit(&mut builder) {
             Ok(s) => s,
             // The CUDA provider creates its device with the session (no GPU, an old driver).
             Err(e) if options.device == Device::Auto && provider == "cuda" => {
                 tracing::warn!("CUDA could not run this model ({e}); running on the CPU");
                 provider = "cpu";
                 let mut b = cpu_builder;
-                b.commit_from_file(path).map_err(cannot)?
+                commit(&mut b).map_err(cannot)?
             }
             Err(e) => return Err(cannot(e)),
         };
