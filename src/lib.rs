@@ -28,6 +28,7 @@ pub mod sink;
 pub mod stage1;
 pub mod stage2;
 pub mod synthetic;
+pub mod tradeoff;
 pub mod transcode;
 pub mod voxel;
 

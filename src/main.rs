@@ -479,7 +479,11 @@ struct RunArgs {
 }
 
 #[derive(Args)]
+#[command(args_conflicts_with_subcommands = true)]
 struct BenchArgs {
+    /// Another measurement instead of the daemon's.
+    #[command(subcommand)]
+    what: Option<BenchCommand>,
     /// Seconds per configuration.
     #[arg(long, default_value_t = 30.0)]
     seconds: f64,
@@ -498,6 +502,47 @@ struct BenchArgs {
     config: Option<PathBuf>,
     #[command(flatten)]
     tier: TierArgs,
+}
+
+#[derive(Subcommand)]
+enum BenchCommand {
+    /// Every Stage 1 tier and setting on the same frames: speed (pairs/s, window latency) and
+    /// accuracy (TF1, TPF1, count ratio, C-METE) against a real recording's held-out half and
+    /// synthetic sequences, with the Pareto front (README: "The speed/accuracy trade").
+    Tradeoff(TradeoffArgs),
+}
+
+#[derive(Args)]
+struct TradeoffArgs {
+    /// A recording with frames and events (.aedat4 with APS frames, or events with --frames).
+    #[arg(long)]
+    real: Option<PathBuf>,
+    /// The recording's frames, when it has none in it.
+    #[arg(long)]
+    frames: Option<PathBuf>,
+    /// Which of the recording's frame intervals are scored (models trained by `v2ce dataset
+    /// recording --split first` are scored on the second).
+    #[arg(long, value_enum, default_value_t = v2ce::dataset::Split::Second)]
+    split: v2ce::dataset::Split,
+    /// Synthetic sequences to score on (made again from --synthetic-seed, as `v2ce dataset
+    /// synthetic` makes them; 0: none).
+    #[arg(long, default_value_t = 8)]
+    synthetic: usize,
+    /// Their seed (2: the validation set of the shipped models' cards).
+    #[arg(long, default_value_t = 2)]
+    synthetic_seed: u64,
+    /// Natural-image textures for them (as given to `v2ce dataset synthetic`).
+    #[arg(long)]
+    images: Option<PathBuf>,
+    /// Their frame size.
+    #[arg(long, value_name = "WxH", default_value = "160x120")]
+    size: String,
+    /// More learned models to measure (ONNX), beside the built-in one.
+    #[arg(long)]
+    model: Vec<PathBuf>,
+    /// Print the rows as JSON lines instead of tables.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Args)]
@@ -693,6 +738,10 @@ fn main() -> ExitCode {
         Command::Info(args) => info(args),
         Command::Run(args) => run(args),
         Command::Devices => devices(),
+        Command::Bench(BenchArgs {
+            what: Some(BenchCommand::Tradeoff(args)),
+            ..
+        }) => tradeoff(args),
         Command::Bench(args) => bench(args),
         Command::Listen(args) => listen(args),
         Command::Render(args) => render(args),
@@ -1259,6 +1308,162 @@ fn dataset_recording(args: DatasetRecordingArgs) -> Result<()> {
         args.out.display()
     );
     Ok(())
+}
+
+fn tradeoff(args: TradeoffArgs) -> Result<()> {
+    use v2ce::stage1::{Preset, Stage1Config, Tier};
+    use v2ce::stage2::SamplerKind;
+    use v2ce::tradeoff::{Scene, Setting};
+    let mut scenes: Vec<Vec<Scene>> = Vec::new();
+    if let Some(real) = &args.real {
+        let (rec, frames) = load_recording(
+            real,
+            args.frames.as_deref(),
+            v2ce::frame::images::ColorSpace::Auto,
+            100_000,
+        )?;
+        let intervals: Vec<v2ce::interval::Interval> = frames
+            .windows(2)
+            .map(|w| v2ce::interval::Interval::new(w[0].t, w[1].t))
+            .collect::<Result<_>>()?;
+        let scored = intervals[args.split.range(intervals.len())].to_vec();
+        let name = format!(
+            "{} ({:?} half)",
+            real.file_name().unwrap_or_default().to_string_lossy(),
+            args.split
+        )
+        .to_lowercase();
+        scenes.push(vec![Scene {
+            name,
+            frames,
+            encoding: v2ce::frame::SourceEncoding::Linear,
+            events: rec.events.events().to_vec(),
+            scored,
+        }]);
+    }
+    if args.synthetic > 0 {
+        let images = match &args.images {
+            Some(dir) => v2ce::dataset::load_images(dir)?,
+            None => Vec::new(),
+        };
+        let cfg = v2ce::dataset::SyntheticConfig {
+            size: parse_size(&args.size)?,
+            ..Default::default()
+        };
+        let mut seqs = Vec::new();
+        for k in 0..args.synthetic {
+            let s = v2ce::dataset::render_synthetic(&cfg, args.synthetic_seed, k, &images)?;
+            let scored = s
+                .frames
+                .windows(2)
+                .map(|w| v2ce::interval::Interval::new(w[0].t, w[1].t))
+                .collect::<Result<_>>()?;
+            seqs.push(Scene {
+                name: format!("synthetic seed {}", args.synthetic_seed),
+                frames: s.frames,
+                encoding: v2ce::frame::SourceEncoding::Linear,
+                events: s.events,
+                scored,
+            });
+        }
+        scenes.push(seqs);
+    }
+    if scenes.is_empty() {
+        return Err(Error::invalid(
+            "bench tradeoff",
+            "nothing to score on: give --real and/or --synthetic N",
+        ));
+    }
+    let physics = |preset: Preset| Setting {
+        label: format!("physics {}", preset.name()),
+        stage1: Stage1Config {
+            preset,
+            ..Default::default()
+        },
+        sampler: SamplerKind::Moment,
+    };
+    let learned = |label: &str, model: &Path, window: usize, threads: usize, sampler| {
+        let mut stage1 = Stage1Config {
+            tier: Tier::Learned,
+            ..Default::default()
+        };
+        stage1.learned.model = model.to_path_buf();
+        stage1.learned.window = window;
+        stage1.learned.threads = threads;
+        Setting {
+            label: format!(
+                "{label} L={window} {threads} thread{} {}",
+                if threads == 1 { "" } else { "s" },
+                sampler_name(sampler)
+            ),
+            stage1,
+            sampler,
+        }
+    };
+    let builtin = Path::new("");
+    let mut settings = vec![
+        physics(Preset::Davis346),
+        physics(Preset::Dvxplorer),
+        physics(Preset::Ideal),
+        learned("v2ce-small", builtin, 16, 2, SamplerKind::Moment),
+        learned("v2ce-small", builtin, 8, 2, SamplerKind::Moment),
+        learned("v2ce-small", builtin, 4, 2, SamplerKind::Moment),
+        learned("v2ce-small", builtin, 16, 1, SamplerKind::Moment),
+        learned("v2ce-small", builtin, 16, 2, SamplerKind::Ldati),
+    ];
+    for m in &args.model {
+        let name = m
+            .file_stem()
+            .unwrap_or_default()
+            .to_string_lossy()
+            .to_string();
+        settings.push(learned(&name, m, 16, 2, SamplerKind::Moment));
+    }
+    let mut rows = Vec::new();
+    for group in &scenes {
+        let name = group.first().map(|s| s.name.clone()).unwrap_or_default();
+        for setting in &settings {
+            let each = group
+                .iter()
+                .map(|scene| v2ce::tradeoff::measure(setting, scene))
+                .collect::<Result<Vec<_>>>()?;
+            if let Some(row) = v2ce::tradeoff::combine(&each, &name) {
+                if args.json {
+                    let text = serde_json::to_string(&row)
+                        .map_err(|e| Error::invalid("report", e.to_string()))?;
+                    println!("{text}");
+                } else {
+                    eprintln!(
+                        "v2ce: {} on {}: {:.1} pairs/s, TF1 {:.3}, ratio {:.2}",
+                        row.setting, row.scene, row.pairs_per_s, row.tf1, row.count_ratio
+                    );
+                }
+                rows.push(row);
+            }
+        }
+    }
+    if !args.json {
+        println!("{}", v2ce::tradeoff::table(&rows));
+        for group in &scenes {
+            let name = group.first().map(|s| s.name.clone()).unwrap_or_default();
+            let front: Vec<&str> = v2ce::tradeoff::pareto(&rows, &name)
+                .iter()
+                .map(|r| r.setting.as_str())
+                .collect();
+            println!(
+                "Pareto front (pairs/s, TF1) on {name}: {}",
+                front.join("; ")
+            );
+        }
+    }
+    Ok(())
+}
+
+fn sampler_name(s: v2ce::stage2::SamplerKind) -> String {
+    serde_json::to_value(s)
+        .ok()
+        .and_then(|v| v.as_str().map(str::to_string))
+        .unwrap_or_default()
 }
 
 fn model_import(args: ModelImportArgs) -> Result<()> {

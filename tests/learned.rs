@@ -850,3 +850,44 @@ fn the_built_in_model_runs_when_no_model_is_given() {
         }
     }
 }
+
+/// `v2ce bench tradeoff` measures every tier on the same synthetic sequences: a row per
+/// setting with scores in range, and a Pareto front named from those rows.
+#[test]
+fn the_tradeoff_bench_measures_every_setting() {
+    ort_or_skip!("the_tradeoff_bench_measures_every_setting");
+    let out = v2ce()
+        .args([
+            "bench",
+            "tradeoff",
+            "--synthetic",
+            "2",
+            "--size",
+            "48x32",
+            "--json",
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let rows: Vec<serde_json::Value> = String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(rows.len(), 8, "{rows:?}");
+    for r in &rows {
+        let tf1 = r["tf1"].as_f64().unwrap();
+        assert!((0.0..=1.0).contains(&tf1), "{r}");
+        assert!(r["pairs_per_s"].as_f64().unwrap() > 0.0, "{r}");
+        assert_eq!(r["pairs"], 32, "{r}");
+    }
+    let physics = rows
+        .iter()
+        .find(|r| r["setting"] == "physics davis346")
+        .unwrap();
+    // The ground truth is the same pixel model at 1 kHz: it scores well, not perfectly.
+    assert!(physics["tf1"].as_f64().unwrap() > 0.3, "{physics}");
+}

@@ -232,14 +232,24 @@ fn write_sequence(
     )
 }
 
-/// One synthetic sequence (see the module docs): its file is written to `dir`.
-pub fn synthetic_sequence(
-    dir: &Path,
+/// A synthetic sequence in memory: what [`synthetic_sequence`] writes, made again from the
+/// same settings, seed and index (`v2ce bench tradeoff` scores tiers on it without files).
+pub struct SyntheticSequence {
+    /// The input frames (8-bit linear values, as an APS gives them), in time order.
+    pub frames: Vec<Frame>,
+    /// The ground-truth events, sorted.
+    pub events: Vec<Event>,
+    /// How it was made (`file` names where it would be written).
+    pub info: SequenceInfo,
+}
+
+/// Renders sequence `index` of the synthetic dataset of `cfg` and `seed` (see the module docs).
+pub fn render_synthetic(
     cfg: &SyntheticConfig,
     seed: u64,
     index: usize,
     images: &[Arc<Image>],
-) -> Result<SequenceInfo> {
+) -> Result<SyntheticSequence> {
     let s = sequence_seed(seed, index);
     let mut rng = Xoshiro256PlusPlus::seed_from_u64(s);
     let fps = if cfg.fps.1 > cfg.fps.0 {
@@ -269,19 +279,24 @@ pub fn synthetic_sequence(
     let (w, h) = cfg.size;
     let mut sim = PhysicsSim::new(sensor, w, h, s)?;
     let mut events = Vec::new();
-    let mut times = Vec::with_capacity(cfg.pairs + 1);
-    let mut frames = Vec::with_capacity((cfg.pairs + 1) * w as usize * h as usize);
+    let mut frames = Vec::with_capacity(cfg.pairs + 1);
     let read_noise = Normal::new(0.0, input_noise.max(1e-12))
         .map_err(|e| Error::invalid("dataset", e.to_string()))?;
     for j in 0..=cfg.pairs * m {
         let t = (j as f64 * step).round() as i64;
         let luma = scene.render(t);
         if j % m == 0 {
-            times.push(t);
-            frames.extend(luma.iter().map(|&v| {
+            let bytes = luma.iter().map(|&v| {
                 let dn = v as f64 / 257.0 + read_noise.sample(&mut rng);
-                dn.round().clamp(0.0, 255.0) as u8
-            }));
+                dn.round().clamp(0.0, 255.0) as u16 * 257
+            });
+            frames.push(Frame {
+                t,
+                width: w,
+                height: h,
+                luma: bytes.collect(),
+                exposure_us: None,
+            });
         }
         let frame = Frame {
             t,
@@ -293,18 +308,45 @@ pub fn synthetic_sequence(
         sim.step(&frame, &mut events)?;
     }
     sort_events(&mut events);
-    let (voxels, held) = voxels_of(&events, &times, cfg.size)?;
-    let file = format!("seq_{index:05}.npz");
-    write_sequence(&dir.join(&file), &frames, &voxels, &times, cfg.size)?;
-    Ok(SequenceInfo {
-        file,
-        seed: s,
-        fps,
-        rate_hz: fps * m as f64,
-        noise,
-        input_noise,
-        events: held,
+    let times: Vec<i64> = frames.iter().map(|f| f.t).collect();
+    let held = {
+        let (lo, hi) = (times[0], times[times.len() - 1]);
+        events.iter().filter(|e| e.t >= lo && e.t < hi).count() as u64
+    };
+    Ok(SyntheticSequence {
+        frames,
+        events,
+        info: SequenceInfo {
+            file: format!("seq_{index:05}.npz"),
+            seed: s,
+            fps,
+            rate_hz: fps * m as f64,
+            noise,
+            input_noise,
+            events: held,
+        },
     })
+}
+
+/// One synthetic sequence (see the module docs): its file is written to `dir`.
+pub fn synthetic_sequence(
+    dir: &Path,
+    cfg: &SyntheticConfig,
+    seed: u64,
+    index: usize,
+    images: &[Arc<Image>],
+) -> Result<SequenceInfo> {
+    let seq = render_synthetic(cfg, seed, index, images)?;
+    let times: Vec<i64> = seq.frames.iter().map(|f| f.t).collect();
+    let bytes: Vec<u8> = seq
+        .frames
+        .iter()
+        .flat_map(|f| f.luma.iter().map(|&v| (v / 257) as u8))
+        .collect();
+    let (voxels, held) = voxels_of(&seq.events, &times, cfg.size)?;
+    debug_assert_eq!(held, seq.info.events);
+    write_sequence(&dir.join(&seq.info.file), &bytes, &voxels, &times, cfg.size)?;
+    Ok(seq.info)
 }
 
 /// Writes `count` synthetic sequences drawn from `seed` to `dir` (created), on `threads`
