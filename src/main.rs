@@ -359,6 +359,9 @@ struct TierArgs {
     /// Execution provider: cpu, cuda, auto [config default: auto].
     #[arg(long, value_enum)]
     device: Option<v2ce::stage1::learned::Device>,
+    /// Learned tier: output values below this are zero before Stage 2 [config default: 0].
+    #[arg(long)]
+    floor: Option<f32>,
 }
 
 impl TierArgs {
@@ -385,6 +388,9 @@ impl TierArgs {
         }
         if let Some(v) = self.device {
             learned.device = v;
+        }
+        if let Some(v) = self.floor {
+            learned.floor = v;
         }
         learned.validate()
     }
@@ -1411,6 +1417,12 @@ fn tradeoff(args: TradeoffArgs) -> Result<()> {
         learned("v2ce-small", builtin, 16, 1, SamplerKind::Moment),
         learned("v2ce-small", builtin, 16, 2, SamplerKind::Ldati),
     ];
+    for floor in [0.05f32, 0.2] {
+        let mut s = learned("v2ce-small", builtin, 16, 2, SamplerKind::Moment);
+        s.stage1.learned.floor = floor;
+        s.label = format!("{} floor {floor}", s.label);
+        settings.push(s);
+    }
     for m in &args.model {
         let name = m
             .file_stem()

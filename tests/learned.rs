@@ -849,6 +849,25 @@ fn the_built_in_model_runs_when_no_model_is_given() {
             assert!(voxels.iter().all(|&v| v == 0.0), "voxels on still frames");
         }
     }
+    // A floor zeroes every output below it.
+    let v = dir.join("floored.npy");
+    ok(v2ce()
+        .arg("convert")
+        .arg(dir.join("moving"))
+        .args([
+            "--fps",
+            "25",
+            "--stage1",
+            "learned",
+            "--floor",
+            "0.05",
+            "--write-voxels",
+        ])
+        .arg(&v)
+        .arg("-o")
+        .arg(dir.join("floored.csv")));
+    let voxels: ArrayD<f32> = ndarray_npy::read_npy(&v).unwrap();
+    assert!(voxels.iter().all(|&v| v == 0.0 || v >= 0.05));
 }
 
 /// `v2ce bench tradeoff` measures every tier on the same synthetic sequences: a row per
@@ -877,7 +896,7 @@ fn the_tradeoff_bench_measures_every_setting() {
         .lines()
         .map(|l| serde_json::from_str(l).unwrap())
         .collect();
-    assert_eq!(rows.len(), 8, "{rows:?}");
+    assert_eq!(rows.len(), 10, "{rows:?}");
     for r in &rows {
         let tf1 = r["tf1"].as_f64().unwrap();
         assert!((0.0..=1.0).contains(&tf1), "{r}");

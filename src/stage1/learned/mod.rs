@@ -96,6 +96,11 @@ pub struct LearnedConfig {
     pub gate_threshold: f32,
     /// Active tiles are grown by this many tiles of 16 pixels.
     pub gate_margin: usize,
+    /// Output values below this are taken as zero before Stage 2 (whose chain decoupling
+    /// makes any positive mass at least one event: a network's faint, diffuse output would
+    /// otherwise fire everywhere; the toolbox's optional `erase_beginning` is such a floor at
+    /// 0.001). 0: off.
+    pub floor: f32,
 }
 
 impl Default for LearnedConfig {
@@ -115,6 +120,7 @@ impl Default for LearnedConfig {
             gate: true,
             gate_threshold: 0.0,
             gate_margin: 1,
+            floor: 0.0,
         }
     }
 }
@@ -132,6 +138,12 @@ impl LearnedConfig {
             return Err(Error::invalid(
                 "stage1.learned.gate_threshold",
                 format!("{}; need 0 to 1 (a gray-value change)", self.gate_threshold),
+            ));
+        }
+        if !(self.floor.is_finite() && (0.0..10.0).contains(&self.floor)) {
+            return Err(Error::invalid(
+                "stage1.learned.floor",
+                format!("{}; need 0 to 10", self.floor),
             ));
         }
         if self.gate_margin > 64 {
@@ -487,6 +499,13 @@ impl LearnedStage1 {
         }
         self.stats.nonfinite += voxels.iter().filter(|v| !v.is_finite()).count() as u64;
         let size = channels * oh * ow;
+        if self.config.floor > 0.0 {
+            let floor = self.config.floor;
+            voxels
+                .iter_mut()
+                .filter(|v| **v < floor)
+                .for_each(|v| *v = 0.0);
+        }
         for (k, a) in activity.iter().enumerate() {
             a.clear_inactive(&mut voxels[k * size..(k + 1) * size], (ow, oh));
             self.stats.tiles_gated += a.inactive() as u64;
