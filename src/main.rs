@@ -359,7 +359,8 @@ struct TierArgs {
     /// Execution provider: cpu, cuda, auto [config default: auto].
     #[arg(long, value_enum)]
     device: Option<v2ce::stage1::learned::Device>,
-    /// Learned tier: output values below this are zero before Stage 2 [config default: 0].
+    /// Learned tier: output values below this are zero before Stage 2 [config default: unset,
+    /// the built-in model's own floor, 0 for other models].
     #[arg(long)]
     floor: Option<f32>,
 }
@@ -390,7 +391,7 @@ impl TierArgs {
             learned.device = v;
         }
         if let Some(v) = self.floor {
-            learned.floor = v;
+            learned.floor = Some(v);
         }
         learned.validate()
     }
@@ -1417,9 +1418,9 @@ fn tradeoff(args: TradeoffArgs) -> Result<()> {
         learned("v2ce-small", builtin, 16, 1, SamplerKind::Moment),
         learned("v2ce-small", builtin, 16, 2, SamplerKind::Ldati),
     ];
-    for floor in [0.05f32, 0.2] {
+    for floor in [0.0f32, 0.05, 0.2] {
         let mut s = learned("v2ce-small", builtin, 16, 2, SamplerKind::Moment);
-        s.stage1.learned.floor = floor;
+        s.stage1.learned.floor = Some(floor);
         s.label = format!("{} floor {floor}", s.label);
         settings.push(s);
     }

@@ -896,7 +896,7 @@ fn the_tradeoff_bench_measures_every_setting() {
         .lines()
         .map(|l| serde_json::from_str(l).unwrap())
         .collect();
-    assert_eq!(rows.len(), 10, "{rows:?}");
+    assert_eq!(rows.len(), 11, "{rows:?}");
     for r in &rows {
         let tf1 = r["tf1"].as_f64().unwrap();
         assert!((0.0..=1.0).contains(&tf1), "{r}");

@@ -57,6 +57,10 @@ pub enum InputEncoding {
 /// into the program (its card: `models/v2ce-small.md`).
 pub const BUILTIN_MODEL: &[u8] = include_bytes!("../../../models/v2ce-small.onnx");
 
+/// The built-in model's output floor (see `LearnedConfig::floor`), chosen on the synthetic
+/// validation set (its card).
+pub const BUILTIN_FLOOR: f32 = 0.1;
+
 /// How the built-in model is named in messages.
 pub const BUILTIN_NAME: &str = "v2ce-small (built in)";
 
@@ -99,8 +103,8 @@ pub struct LearnedConfig {
     /// Output values below this are taken as zero before Stage 2 (whose chain decoupling
     /// makes any positive mass at least one event: a network's faint, diffuse output would
     /// otherwise fire everywhere; the toolbox's optional `erase_beginning` is such a floor at
-    /// 0.001). 0: off.
-    pub floor: f32,
+    /// 0.001). 0: off; unset: the built-in model's own ([`BUILTIN_FLOOR`]), 0 for other models.
+    pub floor: Option<f32>,
 }
 
 impl Default for LearnedConfig {
@@ -120,7 +124,7 @@ impl Default for LearnedConfig {
             gate: true,
             gate_threshold: 0.0,
             gate_margin: 1,
-            floor: 0.0,
+            floor: None,
         }
     }
 }
@@ -140,10 +144,11 @@ impl LearnedConfig {
                 format!("{}; need 0 to 1 (a gray-value change)", self.gate_threshold),
             ));
         }
-        if !(self.floor.is_finite() && (0.0..10.0).contains(&self.floor)) {
+        let floor = self.floor();
+        if !(floor.is_finite() && (0.0..10.0).contains(&floor)) {
             return Err(Error::invalid(
                 "stage1.learned.floor",
-                format!("{}; need 0 to 10", self.floor),
+                format!("{floor}; need 0 to 10"),
             ));
         }
         if self.gate_margin > 64 {
@@ -162,6 +167,15 @@ impl LearnedConfig {
             ));
         }
         Ok(())
+    }
+
+    /// The output floor in use: `floor`, or the built-in model's when it runs.
+    pub fn floor(&self) -> f32 {
+        match self.floor {
+            Some(f) => f,
+            None if self.model.as_os_str().is_empty() => BUILTIN_FLOOR,
+            None => 0.0,
+        }
     }
 
     /// New intervals per window: `stride`, or the window when it is 0.
@@ -499,8 +513,8 @@ impl LearnedStage1 {
         }
         self.stats.nonfinite += voxels.iter().filter(|v| !v.is_finite()).count() as u64;
         let size = channels * oh * ow;
-        if self.config.floor > 0.0 {
-            let floor = self.config.floor;
+        let floor = self.config.floor();
+        if floor > 0.0 {
             voxels
                 .iter_mut()
                 .filter(|v| **v < floor)
