@@ -129,10 +129,9 @@ def main():
                 f"{s.get('c_mete_us', float('nan')):,.0f} |"
             )
     if a.speed:
-        lines += ["", "## Speed (`v2ce model bench`)", "", "| setting | pairs/s | peak RSS (MB) |", "|---|---:|---:|"]
+        lines += ["", "## Speed (`v2ce model bench`)", "", "| setting | pairs/s | peak RSS (MiB) |", "|---|---:|---:|"]
         for label, s in labelled(a.speed):
-            rss = s.get("peak_rss_bytes", 0) / 1e6
-            lines.append(f"| {label} | {s.get('pairs_per_second', float('nan')):.1f} | {rss:.0f} |")
+            lines.append(f"| {label} | {s['pairs_per_s']:.1f} | {s['peak_rss_mib']:.0f} |")
     if a.note:
         lines += ["", "## Notes", ""] + [f"- {n}" for n in a.note]
     lines.append("")
