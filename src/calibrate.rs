@@ -549,23 +549,37 @@ impl Fitter<'_> {
 pub fn preset_file(c: &Calibration, base_name: &str, source: &str) -> Result<String> {
     let body = toml::to_string(&c.config).map_err(|e| Error::invalid("preset", e.to_string()))?;
     let mut text = format!(
-        "# A v2ce physics preset fitted by `v2ce calibrate` ({} {}) on {source}\n# from the {base_name} preset, on {} frame intervals ({} simulation runs).\n# Use it with --preset-file (convert, run, eval) or [stage1] preset_file.\n#\n# fitted on all intervals: TF1 {:.3}, count ratio {:.3}\n",
+        "# A v2ce physics preset fitted by `v2ce calibrate` ({} {}) on {source}\n# from the {base_name} preset, on {} frame intervals ({} simulation runs).\n# Use it with --preset-file (convert, run, eval) or [stage1] preset_file.\n#\n",
         env!("CARGO_PKG_NAME"),
         env!("CARGO_PKG_VERSION"),
         c.intervals,
         c.runs,
-        c.whole.tf1,
-        c.whole.count_ratio,
     );
-    if let Some(f) = &c.flicker {
-        text.push_str(&format!(
-            "# flicker found: {:.2} Hz (phase lock {:.2} over {} ON events at still pixels)\n",
-            f.hz, f.lock, f.events
-        ));
+    for line in findings(c, base_name) {
+        text.push_str(&format!("# {line}\n"));
     }
+    text.push('\n');
+    text.push_str(&body);
+    Ok(text)
+}
+
+/// The flicker found and the scores (all intervals, each half held out), a line each: the
+/// report's closing lines and the preset file's comments.
+fn findings(c: &Calibration, base_name: &str) -> Vec<String> {
+    let mut lines = vec![match &c.flicker {
+        Some(f) => format!(
+            "flicker: {:.2} Hz (phase lock {:.2} over {} ON events at still pixels)",
+            f.hz, f.lock, f.events
+        ),
+        None => "flicker: none found".to_string(),
+    }];
+    lines.push(format!(
+        "all intervals: TF1 {:.3}, TPF1 {:.3}, count ratio {:.3}",
+        c.whole.tf1, c.whole.tpf1, c.whole.count_ratio
+    ));
     for h in &c.held_out {
-        text.push_str(&format!(
-            "# fitted on the {} half, scored on the other: TF1 {:.3} (ratio {:.3}); {base_name} {:.3} ({:.3}); ideal {:.3} ({:.3})\n",
+        lines.push(format!(
+            "fitted on the {} half, scored on the other: TF1 {:.3} (count ratio {:.3}); {base_name} {:.3} ({:.3}); ideal {:.3} ({:.3})",
             h.fitted_on,
             h.fitted.tf1,
             h.fitted.count_ratio,
@@ -575,9 +589,7 @@ pub fn preset_file(c: &Calibration, base_name: &str, source: &str) -> Result<Str
             h.ideal.count_ratio
         ));
     }
-    text.push('\n');
-    text.push_str(&body);
-    Ok(text)
+    lines
 }
 
 /// The fit as text: each fitted parameter before (the base preset) and after, the flicker
@@ -612,28 +624,9 @@ pub fn report(c: &Calibration, base: &PhysicsConfig, base_name: &str) -> String 
     for (name, unit, b, a) in rows {
         out.push_str(&format!("{name:<16} {unit:>6} {b:>12.4} {a:>10.4}\n"));
     }
-    match &c.flicker {
-        Some(fl) => out.push_str(&format!(
-            "flicker: {:.2} Hz (phase lock {:.2} over {} ON events at still pixels)\n",
-            fl.hz, fl.lock, fl.events
-        )),
-        None => out.push_str("flicker: none found\n"),
-    }
-    out.push_str(&format!(
-        "all intervals: TF1 {:.3}, TPF1 {:.3}, count ratio {:.3}\n",
-        c.whole.tf1, c.whole.tpf1, c.whole.count_ratio
-    ));
-    for h in &c.held_out {
-        out.push_str(&format!(
-            "fitted on the {} half, scored on the other: TF1 {:.3} (count ratio {:.3}); {base_name} {:.3} ({:.3}); ideal {:.3} ({:.3})\n",
-            h.fitted_on,
-            h.fitted.tf1,
-            h.fitted.count_ratio,
-            h.base.tf1,
-            h.base.count_ratio,
-            h.ideal.tf1,
-            h.ideal.count_ratio
-        ));
+    for line in findings(c, base_name) {
+        out.push_str(&line);
+        out.push('\n');
     }
     out
 }
