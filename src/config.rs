@@ -301,6 +301,10 @@ impl Config {
             .map_err(|e| Error::format(origin, e.to_string()))?;
         config
             .stage1
+            .validate()
+            .map_err(|e| Error::format(origin, e.to_string()))?;
+        config
+            .stage1
             .learned
             .validate()
             .map_err(|e| Error::format(origin, e.to_string()))?;

@@ -336,10 +336,14 @@ impl RuntimeArgs {
 /// `[stage1.learned]`).
 #[derive(Args)]
 struct TierArgs {
-    /// Stage 1 tier: physics (the pixel model) or learned (the V2CE network; needs --model)
-    /// [config default: physics].
+    /// Stage 1 tier: physics (the pixel model), learned (the V2CE network; the built-in model
+    /// unless --model), auto (learned when this machine runs it at --budget-fps, else
+    /// physics) [config default: physics].
     #[arg(long, value_enum)]
     stage1: Option<v2ce::stage1::Tier>,
+    /// The frame rate `--stage1 auto` must hold (0: none) [config default: 30].
+    #[arg(long, value_name = "FPS")]
+    budget_fps: Option<f64>,
     /// ONNX model of the learned tier (implies --stage1 learned) [config default: none].
     #[arg(long, value_name = "M.onnx")]
     model: Option<PathBuf>,
@@ -365,6 +369,14 @@ struct TierArgs {
     /// the built-in model's own floor, 0 for other models].
     #[arg(long)]
     floor: Option<f32>,
+    /// Learned tier: pixels the network's crops reach beyond the regions that changed (less
+    /// than the model's receptive field is faster, no longer exact) [config default: unset, the
+    /// model's receptive field].
+    #[arg(long, value_name = "PX")]
+    roi_margin: Option<usize>,
+    /// Learned tier: run the network on whole frames, not only around what changed.
+    #[arg(long)]
+    no_roi: bool,
 }
 
 impl TierArgs {
@@ -395,7 +407,17 @@ impl TierArgs {
         if let Some(v) = self.floor {
             learned.floor = Some(v);
         }
-        learned.validate()
+        if let Some(v) = self.roi_margin {
+            learned.roi_margin = Some(v);
+        }
+        if self.no_roi {
+            learned.roi = false;
+        }
+        if let Some(v) = self.budget_fps {
+            config.stage1.budget_fps = v;
+        }
+        config.stage1.validate()?;
+        config.stage1.learned.validate()
     }
 }
 
@@ -552,6 +574,9 @@ struct TradeoffArgs {
     /// Print the rows as JSON lines instead of tables.
     #[arg(long)]
     json: bool,
+    /// Also draw TF1 against speed with the Pareto front, as a PNG here.
+    #[arg(long, value_name = "OUT.png")]
+    plot: Option<PathBuf>,
 }
 
 #[derive(Args)]
@@ -1018,8 +1043,15 @@ fn convert(args: ConvertArgs) -> Result<()> {
     let s1 = &report.stage1;
     let detail = match s1.tier {
         "learned" => format!(
-            "{} windows of L={} (stride {}), median {:.0} ms per window on {}",
-            s1.learned.windows, s1.window, s1.stride, s1.learned.window_ms_p50, s1.learned.provider
+            "{} windows of L={} (stride {}, {} skipped as still), median {:.0} ms per window on \
+             {}, the network ran on {:.0}% of the pixels",
+            s1.learned.windows,
+            s1.window,
+            s1.stride,
+            s1.learned.windows_skipped,
+            s1.learned.window_ms_p50,
+            s1.learned.provider,
+            100.0 * s1.learned.compute()
         ),
         _ => format!(
             "{} of {} tiles skipped as static",
@@ -1426,6 +1458,17 @@ fn tradeoff(args: TradeoffArgs) -> Result<()> {
         s.label = format!("{} floor {floor}", s.label);
         settings.push(s);
     }
+    // The network on whole frames, and on crops with margins inside its receptive field.
+    let mut whole = learned("v2ce-small", builtin, 16, 2, SamplerKind::Moment);
+    whole.stage1.learned.roi = false;
+    whole.label = format!("{} whole frames", whole.label);
+    settings.push(whole);
+    for margin in [64usize, 32] {
+        let mut s = learned("v2ce-small", builtin, 16, 2, SamplerKind::Moment);
+        s.stage1.learned.roi_margin = Some(margin);
+        s.label = format!("{} roi margin {margin}", s.label);
+        settings.push(s);
+    }
     for m in &args.model {
         let name = m
             .file_stem()
@@ -1456,6 +1499,10 @@ fn tradeoff(args: TradeoffArgs) -> Result<()> {
                 rows.push(row);
             }
         }
+    }
+    if let Some(path) = &args.plot {
+        v2ce::tradeoff::plot(&rows, path)?;
+        eprintln!("v2ce: plot written to {}", path.display());
     }
     if !args.json {
         println!("{}", v2ce::tradeoff::table(&rows));

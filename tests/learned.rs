@@ -875,6 +875,8 @@ fn the_built_in_model_runs_when_no_model_is_given() {
 #[test]
 fn the_tradeoff_bench_measures_every_setting() {
     ort_or_skip!("the_tradeoff_bench_measures_every_setting");
+    let dir = common::temp_dir("tradeoff");
+    let plot = dir.join("front.png");
     let out = v2ce()
         .args([
             "bench",
@@ -885,6 +887,8 @@ fn the_tradeoff_bench_measures_every_setting() {
             "48x32",
             "--json",
         ])
+        .arg("--plot")
+        .arg(&plot)
         .output()
         .unwrap();
     assert!(
@@ -896,8 +900,16 @@ fn the_tradeoff_bench_measures_every_setting() {
         .lines()
         .map(|l| serde_json::from_str(l).unwrap())
         .collect();
-    assert_eq!(rows.len(), 11, "{rows:?}");
+    assert_eq!(rows.len(), 14, "{rows:?}");
+    // The plot: one panel, points of both tiers' colours.
+    let png = image::open(&plot).unwrap().to_rgb8();
+    assert_eq!(png.dimensions(), (720, 560));
+    let count = |c: [u8; 3]| png.pixels().filter(|p| p.0 == c).count();
+    assert!(count([31, 119, 180]) > 20, "no physics points");
+    assert!(count([214, 39, 40]) > 20, "no learned points");
     for r in &rows {
+        let compute = r["compute"].as_f64().unwrap();
+        assert!(compute > 0.0 && compute <= 1.0, "{r}");
         let tf1 = r["tf1"].as_f64().unwrap();
         assert!((0.0..=1.0).contains(&tf1), "{r}");
         assert!(r["pairs_per_s"].as_f64().unwrap() > 0.0, "{r}");
@@ -909,4 +921,126 @@ fn the_tradeoff_bench_measures_every_setting() {
         .unwrap();
     // The ground truth is the same pixel model at 1 kHz: it scores well, not perfectly.
     assert!(physics["tf1"].as_f64().unwrap() > 0.3, "{physics}");
+}
+
+/// The network runs only on crops around what changed (`roi`): with the model's own receptive
+/// field as the margin the voxels are exactly the whole frame's, on less of the frame; with a
+/// margin far inside the receptive field they are not (so the crops are really taken).
+#[test]
+fn crops_around_what_moved_give_the_whole_frames_voxels() {
+    ort_or_skip!("crops_around_what_moved_give_the_whole_frames_voxels");
+    let dir = common::temp_dir("learned-roi");
+    let frames = dir.join("frames");
+    std::fs::create_dir_all(&frames).unwrap();
+    let (w, h) = (320u32, 240u32);
+    for i in 0..17u32 {
+        let (sx, sy) = (20 + 3 * i, 24);
+        image::GrayImage::from_fn(w, h, |x, y| {
+            let v = if (sx..sx + 24).contains(&x) && (sy..sy + 24).contains(&y) {
+                230
+            } else {
+                ((x * 37 + y * 11) % 120 + 40) as u8
+            };
+            image::Luma([v])
+        })
+        .save(frames.join(format!("f{i:02}.png")))
+        .unwrap();
+    }
+    let convert = |tag: &str, flags: &[&str]| -> (ArrayD<f32>, String) {
+        let v = dir.join(format!("{tag}.npy"));
+        let out = v2ce()
+            .arg("convert")
+            .arg(&frames)
+            .args(["--fps", "30", "--stage1", "learned", "--threads", "2"])
+            .args(flags)
+            .arg("--write-voxels")
+            .arg(&v)
+            .arg("-o")
+            .arg(dir.join(format!("{tag}.csv")))
+            .output()
+            .unwrap();
+        let log = String::from_utf8_lossy(&out.stderr).to_string();
+        assert!(out.status.success(), "{tag}: {log}");
+        (ndarray_npy::read_npy(&v).unwrap(), log)
+    };
+    let share = |log: &str| -> f64 {
+        let at = log.find("ran on ").expect(log);
+        let rest = &log[at + 7..];
+        rest[..rest.find('%').unwrap()].parse().unwrap()
+    };
+    let (whole, log_whole) = convert("whole", &["--no-roi"]);
+    let (roi, log_roi) = convert("roi", &[]);
+    assert_eq!(share(&log_whole), 100.0);
+    assert!(share(&log_roi) < 80.0, "{log_roi}");
+    assert!(whole.iter().any(|&v| v > 0.0), "the square left no voxels");
+    let differ = whole.iter().zip(roi.iter()).filter(|(a, b)| a != b).count();
+    assert_eq!(differ, 0, "{differ} voxels differ from the whole frame's");
+    eprintln!(
+        "roi: {} voxels identical, the network on {}% of the pixels",
+        whole.len(),
+        share(&log_roi)
+    );
+    let (narrow, log_narrow) = convert("narrow", &["--roi-margin", "8"]);
+    assert!(share(&log_narrow) < share(&log_roi), "{log_narrow}");
+    let differ = whole
+        .iter()
+        .zip(narrow.iter())
+        .filter(|(a, b)| (*a - *b).abs() > 1e-6)
+        .count();
+    assert!(differ > 0, "an 8-pixel margin changed nothing");
+}
+
+/// `--stage1 auto` takes the learned tier when there is no budget, the physics tier when the
+/// network cannot hold the budget or cannot run at all, and says why.
+#[test]
+fn the_automatic_tier_follows_the_budget() {
+    ort_or_skip!("the_automatic_tier_follows_the_budget");
+    let dir = common::temp_dir("learned-auto");
+    let run = |tag: &str, flags: &[&str]| -> String {
+        let out = v2ce()
+            .arg("convert")
+            .arg(fixtures().join("frames_61x83"))
+            .args(["--fps", "30", "--stage1", "auto", "--max-frames", "20"])
+            .args(flags)
+            .arg("-o")
+            .arg(dir.join(format!("{tag}.csv")))
+            .output()
+            .unwrap();
+        let log = String::from_utf8_lossy(&out.stderr).to_string();
+        assert!(out.status.success(), "{tag}: {log}");
+        log
+    };
+    let free = run("free", &["--budget-fps", "0"]);
+    assert!(
+        free.contains("Stage 1 learned") && free.contains("chosen by auto: no frame rate budget"),
+        "{free}"
+    );
+    let tight = run("tight", &["--budget-fps", "100000"]);
+    assert!(
+        tight.contains("Stage 1 physics") && tight.contains("pairs/s on whole frames, less than"),
+        "{tight}"
+    );
+    let missing = dir.join("missing.onnx");
+    let broken = run("broken", &["--model", missing.to_str().unwrap()]);
+    assert!(
+        broken.contains("Stage 1 physics") && broken.contains("cannot run here"),
+        "{broken}"
+    );
+    // The budget is checked like any setting.
+    let err = fails(
+        v2ce()
+            .arg("convert")
+            .arg(fixtures().join("frames_61x83"))
+            .args([
+                "--fps",
+                "30",
+                "--stage1",
+                "auto",
+                "--budget-fps",
+                "nan",
+                "-o",
+            ])
+            .arg(dir.join("nan.csv")),
+    );
+    assert!(err.contains("budget_fps"), "{err}");
 }

@@ -230,6 +230,29 @@ pub struct KeySpec {
     pub kind: KeyKind,
 }
 
+/// The ONNX metadata key of the receptive margin in pixels ([`ReceptiveField::margin`]).
+pub const RECEPTIVE_MARGIN_KEY: &str = "receptive_margin";
+/// The ONNX metadata key of the crop alignment in pixels ([`ReceptiveField::align`]).
+pub const ALIGN_KEY: &str = "spatial_align";
+
+/// How far an output pixel of the network can see (see [`Architecture::receptive_field`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ReceptiveField {
+    /// Input pixels to the left of (or above) an output pixel it can depend on.
+    pub before: usize,
+    /// Input pixels to the right of (or below) it.
+    pub after: usize,
+    /// The product of the encoders' strides: where a crop may start.
+    pub align: usize,
+}
+
+impl ReceptiveField {
+    /// The larger side: the margin that covers both.
+    pub fn margin(&self) -> usize {
+        self.before.max(self.after)
+    }
+}
+
 /// The network, layer by layer, in PyTorch registration order.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Architecture {
@@ -392,6 +415,65 @@ impl Architecture {
             .filter(|k| k.kind.trainable())
             .map(|k| k.shape.iter().product::<usize>() as u64)
             .sum()
+    }
+
+    /// The spatial receptive field: how many input pixels to the left (or above) and to the
+    /// right (or below) an output pixel can depend on, at most over every position, and the
+    /// alignment (the product of the encoders' strides) a crop must start at for its scales
+    /// to fall on the whole frame's grids.
+    ///
+    /// So a crop that starts at a multiple of the alignment and extends at least this far
+    /// beyond a region on every side (or reaches the frame's edge) computes exactly the whole
+    /// frame's outputs in that region (the crop's zero padding stays outside the region's
+    /// receptive field; see `stage1::learned::roi`). Worked out by following an output pixel's
+    /// span back through every layer: padded convolutions grow it by `kernel / 2` at their
+    /// scale, a stride-`s` convolution maps `[a, b]` to `[s*a - k/2, s*b + k/2]`, a decoder's
+    /// nearest resize to its skip's size reads `floor(x / s)` (exactly, since every scale is
+    /// `ceil` of the one above over `s`), and each skip adds its own path to the input.
+    pub fn receptive_field(&self) -> ReceptiveField {
+        let scale = |b: &ResidualBlock| b.stride[2] as i64;
+        // The input span of tensor s_l (l = 0: the head's output; l >= 1: encoder l's).
+        let skip_span = |l: usize, (mut a, mut b): (i64, i64)| {
+            for enc in self.encoders[..l].iter().rev() {
+                let s = scale(enc);
+                (a, b) = (a - 1, b + 1); // conv2, k3 stride 1
+                (a, b) = (s * a - 1, s * b + 1); // conv1, k3 stride s
+            }
+            let h = (self.head.kernel / 2) as i64;
+            (a - h, b + h)
+        };
+        let span_of = |x: i64| {
+            let p = (self.pred.kernel / 2) as i64;
+            let mut span = (x - p, x + p);
+            let mut all = span;
+            let levels = self.decoders.len().min(self.encoders.len());
+            for l in 0..levels {
+                span = (span.0 - 2, span.1 + 2); // the decoder's two k3 convolutions
+                let skip = skip_span(l, span);
+                all = (all.0.min(skip.0), all.1.max(skip.1));
+                let s = scale(&self.encoders[l]);
+                span = (span.0.div_euclid(s), span.1.div_euclid(s));
+            }
+            for _ in &self.resblocks {
+                span = (span.0 - 2, span.1 + 2);
+            }
+            let deepest = skip_span(levels, span);
+            (all.0.min(deepest.0), all.1.max(deepest.1))
+        };
+        let align: i64 = self.encoders.iter().map(scale).product::<i64>().max(1);
+        let (mut before, mut after) = (0i64, 0i64);
+        // Far from 0 so that every position modulo the alignment is seen twice.
+        let origin = 1 << 20;
+        for x in origin..origin + 2 * align {
+            let (a, b) = span_of(x);
+            before = before.max(x - a);
+            after = after.max(b - x);
+        }
+        ReceptiveField {
+            before: before as usize,
+            after: after as usize,
+            align: align as usize,
+        }
     }
 
     /// Checks a checkpoint's entries (names, shapes, dtypes) against the network: strips a
@@ -712,6 +794,7 @@ impl Architecture {
         } else {
             "kept"
         };
+        let field = self.receptive_field();
         let metadata = vec![
             onnx::metadata("producer", "v2ce"),
             onnx::metadata("architecture", "v2ce-3d-unet"),
@@ -722,6 +805,8 @@ impl Architecture {
             onnx::metadata("input_mean", "0.153"),
             onnx::metadata("input_std", "0.165"),
             onnx::metadata("time_bins", &(self.pred.cout / 2).to_string()),
+            onnx::metadata(RECEPTIVE_MARGIN_KEY, &field.margin().to_string()),
+            onnx::metadata(ALIGN_KEY, &field.align.to_string()),
         ];
         let model = onnx::model(graph, "v2ce", metadata);
         Ok(BuiltModel {
@@ -1209,6 +1294,26 @@ mod tests {
     }
 
     use super::*;
+
+    /// The receptive field against the sum worked out by hand for a symmetric chain (head 1,
+    /// encoder i adds 2^(i-1) + 2^i, each bottleneck block 2 * 2^e, decoder i 2 * 2^(i-1): 140
+    /// pixels for V2CE), which the nearest resizes can only widen, by less than one deepest-scale
+    /// pixel per side.
+    #[test]
+    fn the_receptive_field_of_the_unet() {
+        for (e, r) in [(4usize, 2usize), (3, 1), (5, 2), (1, 0)] {
+            let f = Architecture::unet(2, 20, 8, e, r).receptive_field();
+            let deep = 1usize << e;
+            let chain = 1 + 5 * (deep - 1) + 2 * r * deep;
+            eprintln!("e {e} r {r}: {f:?}, chain {chain}");
+            assert_eq!(f.align, deep);
+            for side in [f.before, f.after] {
+                assert!(side >= chain && side < chain + deep, "{f:?} vs {chain}");
+            }
+        }
+        let v2ce = Architecture::v2ce().receptive_field();
+        assert_eq!(v2ce, Architecture::unet(2, 20, 4, 4, 2).receptive_field());
+    }
 
     #[test]
     fn the_key_list_matches_appendix_a() {

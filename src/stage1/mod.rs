@@ -11,6 +11,7 @@
 //!
 //! Adding a tier is one file implementing [`Stage1`] plus one [`Tier`] variant.
 
+pub mod auto;
 pub mod learned;
 pub mod physics;
 
@@ -106,8 +107,12 @@ pub enum Tier {
     /// The physical pixel model (fast, CPU, real time).
     #[default]
     Physics,
-    /// The V2CE network through ONNX Runtime (`[stage1.learned]`, needs a model).
+    /// The V2CE network through ONNX Runtime (`[stage1.learned]`; the built-in model unless
+    /// one is configured).
     Learned,
+    /// The learned tier when this machine runs it fast enough for `budget_fps`, else physics
+    /// (the rule: [`auto`]).
+    Auto,
 }
 
 impl Tier {
@@ -116,6 +121,7 @@ impl Tier {
         match self {
             Tier::Physics => "physics",
             Tier::Learned => "learned",
+            Tier::Auto => "auto",
         }
     }
 }
@@ -131,6 +137,7 @@ pub fn build(
     Ok(match config.tier {
         Tier::Physics => Box::new(PhysicsStage1::new(config, bins, size)?),
         Tier::Learned => Box::new(LearnedStage1::new(&config.learned, bins, size, encoding)?),
+        Tier::Auto => auto::build(config, bins, size, encoding)?,
     })
 }
 
@@ -202,7 +209,7 @@ impl PhysicsOverrides {
 }
 
 /// Stage 1 settings.
-#[derive(Debug, Clone, Default, PartialEq, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Stage1Config {
     /// The tier: `physics` or `learned`.
@@ -223,6 +230,25 @@ pub struct Stage1Config {
     pub physics: PhysicsOverrides,
     /// The learned tier's model and windows.
     pub learned: LearnedConfig,
+    /// The frame rate `tier = "auto"` must hold, fps (0: no budget, learned whenever it can
+    /// run).
+    pub budget_fps: f64,
+}
+
+impl Default for Stage1Config {
+    fn default() -> Self {
+        Stage1Config {
+            tier: Tier::default(),
+            preset: Preset::default(),
+            preset_file: Default::default(),
+            custom: None,
+            output: Stage1Output::default(),
+            seed: 0,
+            physics: PhysicsOverrides::default(),
+            learned: LearnedConfig::default(),
+            budget_fps: auto::DEFAULT_BUDGET_FPS,
+        }
+    }
 }
 
 impl Stage1Config {
@@ -231,6 +257,18 @@ impl Stage1Config {
     pub fn physics_config(&self) -> PhysicsConfig {
         let base = self.custom.clone().unwrap_or_else(|| self.preset.config());
         self.physics.apply(base)
+    }
+
+    /// Checks the settings that are not the physics or learned tables'.
+    pub fn validate(&self) -> Result<()> {
+        let b = self.budget_fps;
+        if !(b.is_finite() && (0.0..=100_000.0).contains(&b)) {
+            return Err(Error::invalid(
+                "stage1.budget_fps",
+                format!("{b}; need 0 (no budget) to 100000 fps"),
+            ));
+        }
+        Ok(())
     }
 
     /// Reads `path` as a preset file (see `preset_file`) and uses it from now on.

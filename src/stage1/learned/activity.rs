@@ -74,6 +74,16 @@ impl Activity {
         }
     }
 
+    /// Tiles across and down.
+    pub fn tiles(&self) -> (usize, usize) {
+        (self.tiles_x, self.tiles_y)
+    }
+
+    /// Whether each tile is active, row-major.
+    pub fn active(&self) -> &[bool] {
+        &self.active
+    }
+
     /// Whether any tile is active.
     pub fn any(&self) -> bool {
         self.active.iter().any(|&a| a)

@@ -17,6 +17,7 @@
 pub mod activity;
 pub mod preprocess;
 pub mod raw;
+pub mod roi;
 pub mod runtime;
 
 use std::collections::VecDeque;
@@ -32,6 +33,7 @@ use crate::voxel::VoxelGrid;
 
 use activity::Activity;
 pub use preprocess::{Geometry, Layout, Tile};
+use roi::{Crop, Margin, Rect};
 pub use runtime::{Device, Network, RuntimeOptions};
 
 use super::{SourceEncoding, Stage1, Stage1Batch, Stage1Stats};
@@ -105,6 +107,14 @@ pub struct LearnedConfig {
     /// otherwise fire everywhere; the toolbox's optional `erase_beginning` is such a floor at
     /// 0.001). 0: off; unset: the built-in model's own ([`BUILTIN_FLOOR`]), 0 for other models.
     pub floor: Option<f32>,
+    /// Run the network only on crops around the tiles that changed, grown by the receptive
+    /// field ([`roi`]; with `gate` on, and one tile per frame: not `pano`). With the model's own
+    /// margin the kept outputs are the whole frame's.
+    pub roi: bool,
+    /// Pixels the crops reach beyond the changed tiles; unset: the model's receptive field as
+    /// its metadata states (155 for V2CE-shaped models; a model that does not state it runs on
+    /// whole frames). Less is faster and no longer exact.
+    pub roi_margin: Option<usize>,
 }
 
 impl Default for LearnedConfig {
@@ -125,6 +135,8 @@ impl Default for LearnedConfig {
             gate_threshold: 0.0,
             gate_margin: 1,
             floor: None,
+            roi: true,
+            roi_margin: None,
         }
     }
 }
@@ -156,6 +168,14 @@ impl LearnedConfig {
                 "stage1.learned.gate_margin",
                 format!("{} tiles; need 0 to 64", self.gate_margin),
             ));
+        }
+        if let Some(m) = self.roi_margin {
+            if m > 4096 {
+                return Err(Error::invalid(
+                    "stage1.learned.roi_margin",
+                    format!("{m} pixels; need 0 to 4096"),
+                ));
+            }
         }
         if self.stride > self.window {
             return Err(Error::invalid(
@@ -216,12 +236,28 @@ pub struct LearnedStats {
     pub windows_skipped: u64,
     /// Tiles of kept intervals whose outputs were dropped because nothing changed there.
     pub tiles_gated: u64,
+    /// Pixels the network ran on, times pairs (crops of [`roi`], or whole frames).
+    pub pixels_run: u64,
+    /// Pixels whole-frame runs of every window (skipped ones too) would have taken, times pairs.
+    pub pixels_full: u64,
     /// Median time of one window's inference, ms.
     pub window_ms_p50: f64,
     /// Longest, ms.
     pub window_ms_max: f64,
     /// The execution provider (`cpu`, `cuda`).
     pub provider: &'static str,
+}
+
+impl LearnedStats {
+    /// The share of whole-frame compute spent: pixels run over pixels a whole-frame run of
+    /// every window would take (1 before any window).
+    pub fn compute(&self) -> f64 {
+        if self.pixels_full == 0 {
+            1.0
+        } else {
+            self.pixels_run as f64 / self.pixels_full as f64
+        }
+    }
 }
 
 /// When windows run, for a stream of frames (pure bookkeeping; see the module docs).
@@ -320,6 +356,8 @@ pub struct LearnedStage1 {
     window_us: hdrhistogram::Histogram<u64>,
     input: Vec<f32>,
     tile: Vec<f32>,
+    /// How far crops reach, when the network runs on the regions that changed only.
+    roi: Option<Margin>,
 }
 
 impl LearnedStage1 {
@@ -400,7 +438,31 @@ impl LearnedStage1 {
         };
         let window_us = hdrhistogram::Histogram::new_with_bounds(1, 3_600_000_000, 3)
             .map_err(|e| Error::invalid("histogram", e.to_string()))?;
+        let croppable = config.roi
+            && config.gate
+            && config.geometry != Geometry::Pano
+            && fixed[3].is_none()
+            && fixed[4].is_none();
+        let field = network.receptive_field();
+        let roi = match (croppable, config.roi_margin, field) {
+            (false, _, _) => None,
+            (true, Some(m), field) => Some(Margin {
+                before: m,
+                after: m,
+                align: field.map_or(activity::TILE, |f| f.align),
+            }),
+            (true, None, Some(f)) => Some(f),
+            (true, None, None) => {
+                tracing::info!(
+                    "{} does not state its receptive field (a model made by `v2ce model import` \
+                     does); it runs on whole frames (set stage1.learned.roi_margin to crop)",
+                    network.path().display()
+                );
+                None
+            }
+        };
         Ok(LearnedStage1 {
+            roi,
             stats: LearnedStats {
                 provider: network.provider(),
                 ..LearnedStats::default()
@@ -416,6 +478,16 @@ impl LearnedStage1 {
             input: Vec::new(),
             tile: Vec::new(),
         })
+    }
+
+    /// Runs the network once on `pairs` pairs of whole (gray) frames, outputs discarded: to
+    /// time it (see [`super::auto`]).
+    pub fn probe(&mut self, pairs: usize) -> Result<()> {
+        let (nw, nh) = self.layout.net();
+        let pairs = self.network.pairs().unwrap_or(pairs);
+        let input = vec![0f32; pairs * 2 * nh * nw];
+        self.network
+            .run_with(&input, [1, pairs, 2, nh, nw], |_, _| Ok(()))
     }
 
     /// Runs the newest `run.frames` frames and appends the `run.keep` new intervals. A model that
@@ -461,49 +533,80 @@ impl LearnedStage1 {
         };
         let still = self.config.gate && !activity.iter().any(Activity::any);
         let started = Instant::now();
-        let tiles = if still {
-            self.stats.windows_skipped += 1;
-            Vec::new()
-        } else {
-            self.layout.tiles()
+        let tiles = self.layout.tiles();
+        self.stats.pixels_full += (tiles.len() * nw * nh * pairs) as u64;
+        // Each run: where its crop starts in the resized plane, where its output goes, the
+        // crop (in the network input's pixels) and what of its output is kept.
+        let runs: Vec<(Tile, Crop)> = match (still, self.roi, activity.first()) {
+            (true, _, _) => {
+                self.stats.windows_skipped += 1;
+                Vec::new()
+            }
+            (false, Some(margin), Some(a)) => {
+                let mut union = vec![false; a.active().len()];
+                for a in &activity {
+                    union.iter_mut().zip(a.active()).for_each(|(u, &b)| *u |= b);
+                }
+                roi::plan(&union, a.tiles(), (nw, nh), margin)
+                    .into_iter()
+                    .flat_map(|c| tiles.iter().map(move |&t| (t, c.clone())))
+                    .collect()
+            }
+            _ => tiles
+                .iter()
+                .map(|&t| {
+                    let rect = Rect::full((nw, nh));
+                    let keep = vec![Rect {
+                        x0: t.keep_from,
+                        ..rect
+                    }];
+                    (t, Crop { rect, keep })
+                })
+                .collect(),
         };
-        for tile in tiles {
+        for (tile, crop) in runs {
+            let (cw, ch) = (crop.rect.width(), crop.rect.height());
             self.input.clear();
             let padded = std::iter::repeat_n(frames[0], pad).chain(frames.iter().copied());
             let padded: Vec<&(i64, Vec<f32>)> = padded.collect();
             for pair in padded.windows(2) {
                 for (_, plane) in pair {
-                    self.layout.tile(plane, tile.input_x, &mut self.tile);
+                    self.layout
+                        .crop(plane, tile.input_x, &crop.rect, &mut self.tile);
                     self.input.extend_from_slice(&self.tile);
                 }
             }
             let path = self.network.path().to_path_buf();
             self.network
-                .run_with(&self.input, [1, pairs, 2, nh, nw], |shape, values| {
+                .run_with(&self.input, [1, pairs, 2, ch, cw], |shape, values| {
                     if shape[2] != channels {
                         return Err(Error::format(
                             &path,
                             format!("{} channels per interval, expected {channels}", shape[2]),
                         ));
                     }
-                    // The kept intervals' columns keep_from.. of this tile go to
-                    // output_x + keep_from.. of the events' frame.
-                    let plane = nh * nw;
+                    // The kept parts of the crop go to the same pixels of the network's
+                    // input, shifted by the tile's place in the events' frame.
+                    let plane = ch * cw;
                     for k in 0..run.keep {
                         let j = pairs - run.keep + k;
                         for c in 0..channels {
                             let src = &values[(j * channels + c) * plane..][..plane];
                             let dst = &mut voxels[(k * channels + c) * oh * ow..][..oh * ow];
-                            for y in 0..nh {
-                                let from = &src[y * nw + tile.keep_from..(y + 1) * nw];
-                                let at = y * ow + tile.output_x + tile.keep_from;
-                                dst[at..at + from.len()].copy_from_slice(from);
+                            for r in &crop.keep {
+                                for y in r.y0..r.y1 {
+                                    let at = (y - crop.rect.y0) * cw + r.x0 - crop.rect.x0;
+                                    let to = y * ow + tile.output_x + r.x0;
+                                    dst[to..to + r.width()]
+                                        .copy_from_slice(&src[at..at + r.width()]);
+                                }
                             }
                         }
                     }
                     Ok(())
                 })?;
             self.stats.pairs_run += pairs as u64;
+            self.stats.pixels_run += (crop.rect.area() * pairs) as u64;
         }
         if !still {
             let us = started.elapsed().as_micros().clamp(1, 3_600_000_000) as u64;

@@ -16,6 +16,8 @@ use crate::frame::color::srgb_to_linear_lut;
 use crate::frame::{Frame, FULL_SCALE};
 use crate::stage1::SourceEncoding;
 
+use super::roi::Rect;
+
 /// The toolbox's normalisation: `(v - MEAN) / STD` on values in `[0, 1]`.
 pub const MEAN: f32 = 0.153;
 /// See [`MEAN`].
@@ -212,11 +214,17 @@ impl Layout {
 
     /// Normalised values of the tile starting at column `x0` of a resized plane, row-major.
     pub fn tile(&self, plane: &[f32], x0: usize, out: &mut Vec<f32>) {
+        self.crop(plane, x0, &Rect::full(self.net), out);
+    }
+
+    /// Normalised values of the part `rect` (in the network input's pixels, within
+    /// [`Layout::net`]) of the tile starting at column `x0` of a resized plane, row-major.
+    pub fn crop(&self, plane: &[f32], x0: usize, rect: &Rect, out: &mut Vec<f32>) {
         let (rw, _) = self.resized;
-        let (nw, nh) = self.net;
         out.clear();
-        for y in 0..nh {
-            let row = &plane[y * rw + x0..y * rw + x0 + nw];
+        for y in rect.y0..rect.y1 {
+            let at = y * rw + x0;
+            let row = &plane[at + rect.x0..at + rect.x1];
             out.extend(row.iter().map(|&v| (v - MEAN) / STD));
         }
     }

@@ -22,6 +22,9 @@ use ort::value::{TensorRef, ValueType};
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
+use crate::model::v2ce_net::{ALIGN_KEY, RECEPTIVE_MARGIN_KEY};
+
+use super::roi::Margin;
 
 /// The ONNX Runtime release the project is built against (`ort`'s `api-31`).
 pub const ORT_VERSION: &str = "1.31.1";
@@ -246,6 +249,7 @@ pub struct Network {
     path: PathBuf,
     provider: &'static str,
     fixed: [Option<usize>; 5],
+    field: Option<Margin>,
 }
 
 impl Network {
@@ -376,13 +380,36 @@ impl Network {
             known(din[3]),
             known(din[4]),
         ];
+        let metadata = session.metadata().ok();
+        let read = |key: &str| {
+            metadata
+                .as_ref()
+                .and_then(|m| m.custom(key))
+                .and_then(|v| v.trim().parse::<usize>().ok())
+        };
+        let field = match (read(RECEPTIVE_MARGIN_KEY), read(ALIGN_KEY)) {
+            (Some(margin), Some(align)) if align > 0 => Some(Margin {
+                before: margin,
+                after: margin,
+                align,
+            }),
+            _ => None,
+        };
+        drop(metadata);
         Ok(Network {
+            field,
             input: inputs[0].name().to_string(),
             session,
             path: path.to_path_buf(),
             provider,
             fixed,
         })
+    }
+
+    /// The receptive field the model's metadata states (`v2ce model import` writes it), as a
+    /// margin for [`super::roi`]; `None` when it does not.
+    pub fn receptive_field(&self) -> Option<Margin> {
+        self.field
     }
 
     /// The execution provider in use (`cpu`, `cuda`).
