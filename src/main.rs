@@ -574,6 +574,13 @@ struct TradeoffArgs {
     /// Print the rows as JSON lines instead of tables.
     #[arg(long)]
     json: bool,
+    /// Also score on this many still-camera synthetic sequences (steady light, clean frames,
+    /// only objects move; seed --synthetic-seed), where the learned tier's crops save compute.
+    #[arg(long, default_value_t = 0)]
+    still: usize,
+    /// Their frame size.
+    #[arg(long, value_name = "WxH", default_value = "320x240")]
+    still_size: String,
     /// Also draw TF1 against speed with the Pareto front, as a PNG here.
     #[arg(long, value_name = "OUT.png")]
     plot: Option<PathBuf>,
@@ -1382,37 +1389,54 @@ fn tradeoff(args: TradeoffArgs) -> Result<()> {
             scored,
         }]);
     }
+    let images = match &args.images {
+        Some(dir) if args.synthetic > 0 || args.still > 0 => v2ce::dataset::load_images(dir)?,
+        _ => Vec::new(),
+    };
+    let synthetic = |count: usize, cfg: &v2ce::dataset::SyntheticConfig, name: String| {
+        (0..count)
+            .map(|k| {
+                let s = v2ce::dataset::render_synthetic(cfg, args.synthetic_seed, k, &images)?;
+                let scored = s
+                    .frames
+                    .windows(2)
+                    .map(|w| v2ce::interval::Interval::new(w[0].t, w[1].t))
+                    .collect::<Result<_>>()?;
+                Ok(Scene {
+                    name: name.clone(),
+                    frames: s.frames,
+                    encoding: v2ce::frame::SourceEncoding::Linear,
+                    events: s.events,
+                    scored,
+                })
+            })
+            .collect::<Result<Vec<Scene>>>()
+    };
     if args.synthetic > 0 {
-        let images = match &args.images {
-            Some(dir) => v2ce::dataset::load_images(dir)?,
-            None => Vec::new(),
-        };
         let cfg = v2ce::dataset::SyntheticConfig {
             size: parse_size(&args.size)?,
             ..Default::default()
         };
-        let mut seqs = Vec::new();
-        for k in 0..args.synthetic {
-            let s = v2ce::dataset::render_synthetic(&cfg, args.synthetic_seed, k, &images)?;
-            let scored = s
-                .frames
-                .windows(2)
-                .map(|w| v2ce::interval::Interval::new(w[0].t, w[1].t))
-                .collect::<Result<_>>()?;
-            seqs.push(Scene {
-                name: format!("synthetic seed {}", args.synthetic_seed),
-                frames: s.frames,
-                encoding: v2ce::frame::SourceEncoding::Linear,
-                events: s.events,
-                scored,
-            });
-        }
-        scenes.push(seqs);
+        let name = format!("synthetic seed {}", args.synthetic_seed);
+        scenes.push(synthetic(args.synthetic, &cfg, name)?);
+    }
+    if args.still > 0 {
+        let cfg = v2ce::dataset::SyntheticConfig {
+            size: parse_size(&args.still_size)?,
+            input_noise: 0.0,
+            pace: v2ce::dataset::Pace {
+                still: true,
+                ..Default::default()
+            },
+            ..Default::default()
+        };
+        let name = format!("still camera, seed {}", args.synthetic_seed);
+        scenes.push(synthetic(args.still, &cfg, name)?);
     }
     if scenes.is_empty() {
         return Err(Error::invalid(
             "bench tradeoff",
-            "nothing to score on: give --real and/or --synthetic N",
+            "nothing to score on: give --real, --synthetic N and/or --still N",
         ));
     }
     let physics = |preset: Preset| Setting {

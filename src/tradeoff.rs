@@ -75,6 +75,8 @@ pub struct Row {
     pub c_mete_us: f64,
     /// Simulated events on the scored intervals.
     pub events: u64,
+    /// Real (or ground-truth) events on the scored intervals.
+    pub real_events: u64,
 }
 
 /// Runs `setting` on `scene` (see the module docs).
@@ -144,40 +146,47 @@ pub fn measure(setting: &Setting, scene: &Scene) -> Result<Row> {
         count_ratio: m.count_ratio(),
         c_mete_us: timing.finish().c_mete_us,
         events: m.sim_events,
+        real_events: m.real_events,
     })
 }
 
-/// Rows of the same setting on several scenes as one: times and events added, scores averaged
-/// over the scenes (each scene counts once, as the paper averages over chunks), the count
-/// ratio of the totals.
+/// Rows of the same setting on several scenes as one: times and events added, the count ratio
+/// of the totals, scores averaged over the scenes that have real events (each counts once, as
+/// the paper averages over chunks; a scene where nothing happened has no score, but its time
+/// and compute count).
 pub fn combine(rows: &[Row], scene: &str) -> Option<Row> {
     let first = rows.first()?;
-    let n = rows.len() as f64;
-    let real: f64 = rows
-        .iter()
-        .map(|r| r.events as f64 / r.count_ratio.max(1e-12))
-        .sum();
+    let scored: Vec<&Row> = rows.iter().filter(|r| r.real_events > 0).collect();
+    let mean = |f: fn(&Row) -> f64| {
+        if scored.is_empty() {
+            0.0
+        } else {
+            scored.iter().map(|r| f(r)).sum::<f64>() / scored.len() as f64
+        }
+    };
     let pairs = rows.iter().map(|r| r.pairs).sum();
     let seconds = rows.iter().map(|r| r.seconds).sum::<f64>();
     let events = rows.iter().map(|r| r.events).sum::<u64>();
+    let real_events = rows.iter().map(|r| r.real_events).sum::<u64>();
     Some(Row {
         setting: first.setting.clone(),
         scene: scene.to_string(),
         pairs,
         seconds,
         pairs_per_s: pairs as f64 / seconds.max(1e-9),
-        window_ms: rows.iter().map(|r| r.window_ms).sum::<f64>() / n,
+        window_ms: rows.iter().map(|r| r.window_ms).sum::<f64>() / rows.len() as f64,
         compute: rows.iter().map(|r| r.compute * r.pairs as f64).sum::<f64>()
             / (pairs as f64).max(1.0),
-        tf1: rows.iter().map(|r| r.tf1).sum::<f64>() / n,
-        tpf1: rows.iter().map(|r| r.tpf1).sum::<f64>() / n,
-        count_ratio: if real > 0.0 {
-            events as f64 / real
+        tf1: mean(|r| r.tf1),
+        tpf1: mean(|r| r.tpf1),
+        count_ratio: if real_events > 0 {
+            events as f64 / real_events as f64
         } else {
             0.0
         },
-        c_mete_us: rows.iter().map(|r| r.c_mete_us).sum::<f64>() / n,
+        c_mete_us: mean(|r| r.c_mete_us),
         events,
+        real_events,
     })
 }
 
@@ -395,6 +404,7 @@ mod tests {
             count_ratio: 1.0,
             c_mete_us: 0.0,
             events: 100,
+            real_events: 100,
         }
     }
 
@@ -415,11 +425,15 @@ mod tests {
     #[test]
     fn combined_rows_average_scores_and_add_counts() {
         let mut a = row("x", 10.0, 0.6);
-        a.count_ratio = 2.0; // 100 events for 50 real
+        a.real_events = 50; // 100 events for 50 real
         let b = row("x", 10.0, 0.4); // 100 for 100
-        let c = combine(&[a, b], "all").unwrap();
+                                     // A scene where nothing happened: no score, but its events count.
+        let mut still = row("x", 10.0, 0.0);
+        still.real_events = 0;
+        still.events = 30;
+        let c = combine(&[a, b, still], "all").unwrap();
         assert!((c.tf1 - 0.5).abs() < 1e-12);
-        assert!((c.count_ratio - 200.0 / 150.0).abs() < 1e-9);
-        assert_eq!(c.pairs, 20);
+        assert!((c.count_ratio - 230.0 / 150.0).abs() < 1e-9);
+        assert_eq!(c.pairs, 30);
     }
 }

@@ -885,6 +885,10 @@ fn the_tradeoff_bench_measures_every_setting() {
             "2",
             "--size",
             "48x32",
+            "--still",
+            "1",
+            "--still-size",
+            "320x240",
             "--json",
         ])
         .arg("--plot")
@@ -900,20 +904,26 @@ fn the_tradeoff_bench_measures_every_setting() {
         .lines()
         .map(|l| serde_json::from_str(l).unwrap())
         .collect();
-    assert_eq!(rows.len(), 14, "{rows:?}");
-    // The plot: one panel, points of both tiers' colours.
+    assert_eq!(rows.len(), 28, "{rows:?}");
+    // The plot: a panel per scene, points of both tiers' colours.
     let png = image::open(&plot).unwrap().to_rgb8();
-    assert_eq!(png.dimensions(), (720, 560));
+    assert_eq!(png.dimensions(), (1440, 560));
     let count = |c: [u8; 3]| png.pixels().filter(|p| p.0 == c).count();
-    assert!(count([31, 119, 180]) > 20, "no physics points");
-    assert!(count([214, 39, 40]) > 20, "no learned points");
+    assert!(count([31, 119, 180]) > 40, "no physics points");
+    assert!(count([214, 39, 40]) > 40, "no learned points");
     for r in &rows {
         let compute = r["compute"].as_f64().unwrap();
-        assert!(compute > 0.0 && compute <= 1.0, "{r}");
+        assert!((0.0..=1.0).contains(&compute), "{r}");
         let tf1 = r["tf1"].as_f64().unwrap();
         assert!((0.0..=1.0).contains(&tf1), "{r}");
         assert!(r["pairs_per_s"].as_f64().unwrap() > 0.0, "{r}");
-        assert_eq!(r["pairs"], 32, "{r}");
+        assert!(r["real_events"].as_u64().unwrap() > 0, "{r}");
+        let pairs = if r["scene"].as_str().unwrap().starts_with("still") {
+            16
+        } else {
+            32
+        };
+        assert_eq!(r["pairs"], pairs, "{r}");
     }
     let physics = rows
         .iter()
@@ -921,6 +931,24 @@ fn the_tradeoff_bench_measures_every_setting() {
         .unwrap();
     // The ground truth is the same pixel model at 1 kHz: it scores well, not perfectly.
     assert!(physics["tf1"].as_f64().unwrap() > 0.3, "{physics}");
+    // On the still camera, crops with a narrower margin run on less of the frame, and the
+    // whole-frame setting on all of what it runs.
+    let still = |setting: &str| {
+        rows.iter()
+            .find(|r| {
+                r["scene"].as_str().unwrap().starts_with("still")
+                    && r["setting"].as_str().unwrap().ends_with(setting)
+            })
+            .unwrap()["compute"]
+            .as_f64()
+            .unwrap()
+    };
+    assert!(
+        still("roi margin 32") < still("whole frames"),
+        "{} vs {}",
+        still("roi margin 32"),
+        still("whole frames")
+    );
 }
 
 /// The network runs only on crops around what changed (`roi`): with the model's own receptive

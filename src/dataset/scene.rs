@@ -265,6 +265,33 @@ pub struct Occluder {
 }
 
 impl Occluder {
+    /// An object of random size, shape, path and texture in a `w x h` frame.
+    fn random(
+        rng: &mut Xoshiro256PlusPlus,
+        (w, h): (f64, f64),
+        pace: Pace,
+        images: &[Arc<Image>],
+    ) -> Self {
+        let r = rng.gen_range(4.0..(w.min(h) / 3.0).max(5.0));
+        let disc = rng.gen_bool(0.5);
+        let half = if disc {
+            (r, r)
+        } else {
+            (r, rng.gen_range(r / 3.0..r * 1.5))
+        };
+        Occluder {
+            cx: Path1::random(rng, 0.0..w, pace.objects, 30.0),
+            cy: Path1::random(rng, 0.0..h, pace.objects, 30.0),
+            half,
+            corner: if disc {
+                r
+            } else {
+                rng.gen_range(0.0..half.0.min(half.1))
+            },
+            texture: Texture::random(rng, images),
+        }
+    }
+
     /// Coverage of pixel `(x, y)` (image coordinates) in `[0, 1]` and the object's reflectance
     /// there.
     fn at(&self, x: f64, y: f64, t: f64) -> (f64, f64) {
@@ -298,6 +325,9 @@ pub struct Pace {
     pub pan: f64,
     /// Largest object speed, pixels per second.
     pub objects: f64,
+    /// Hold the camera and the light still, so only the objects move (drawn as usual, then
+    /// held: the same seed gives the same objects and textures either way).
+    pub still: bool,
 }
 
 impl Default for Pace {
@@ -305,6 +335,7 @@ impl Default for Pace {
         Pace {
             pan: 150.0,
             objects: 250.0,
+            still: false,
         }
     }
 }
@@ -337,26 +368,7 @@ impl Scene {
             }
         };
         let occluders = (0..rng.gen_range(0..4))
-            .map(|_| {
-                let r = rng.gen_range(4.0..(w.min(h) / 3.0).max(5.0));
-                let disc = rng.gen_bool(0.5);
-                let half = if disc {
-                    (r, r)
-                } else {
-                    (r, rng.gen_range(r / 3.0..r * 1.5))
-                };
-                Occluder {
-                    cx: Path1::random(&mut rng, 0.0..w, pace.objects, 30.0),
-                    cy: Path1::random(&mut rng, 0.0..h, pace.objects, 30.0),
-                    half,
-                    corner: if disc {
-                        r
-                    } else {
-                        rng.gen_range(0.0..half.0.min(half.1))
-                    },
-                    texture: Texture::random(&mut rng, images),
-                }
-            })
+            .map(|_| Occluder::random(&mut rng, (w, h), pace, images))
             .collect();
         let background = Texture::random(&mut rng, images);
         // Overall light from 4% to 90% of full scale; a third of scenes change it (a cloud,
@@ -373,13 +385,33 @@ impl Scene {
         } else {
             Path1::still(level)
         };
-        Scene {
+        let mut scene = Scene {
             background,
             motion,
             occluders,
             log_light,
             size,
+        };
+        if pace.still {
+            let m = &mut scene.motion;
+            for p in [
+                &mut m.tx,
+                &mut m.ty,
+                &mut m.angle,
+                &mut m.log_zoom,
+                &mut m.tilt_x,
+                &mut m.tilt_y,
+            ] {
+                *p = Path1::still(p.p0);
+            }
+            scene.log_light = Path1::still(scene.log_light.p0);
+            // Something must move: one object more, drawn after everything else.
+            if scene.occluders.is_empty() {
+                let o = Occluder::random(&mut rng, (w, h), pace, images);
+                scene.occluders.push(o);
+            }
         }
+        scene
     }
 
     /// Linear luminance (fraction of full scale) of pixel `(x, y)` at `t_us`.
