@@ -169,15 +169,8 @@ impl RunConfig {
         if !(self.fps.is_finite() && self.fps >= 0.0) {
             return bad("run.fps", format!("{} (must be >= 0)", self.fps));
         }
-        if !(self.duration.is_finite() && self.duration >= 0.0) {
-            return bad("run.duration", format!("{} (must be >= 0)", self.duration));
-        }
-        if !(self.stats_interval.is_finite() && self.stats_interval > 0.0) {
-            return bad(
-                "run.stats_interval",
-                format!("{} (must be > 0)", self.stats_interval),
-            );
-        }
+        crate::limits::seconds("run.duration", self.duration, true)?;
+        crate::limits::seconds("run.stats_interval", self.stats_interval, false)?;
         if !(1..=1024).contains(&self.queue_capacity) {
             return bad(
                 "run.queue_capacity",
@@ -218,7 +211,10 @@ pub fn parse_size(text: &str) -> Result<(u16, u16)> {
         .split_once(['x', 'X'])
         .and_then(|(w, h)| Some((w.trim().parse::<u16>().ok()?, h.trim().parse::<u16>().ok()?)));
     match parsed {
-        Some((w, h)) if w > 0 && h > 0 => Ok((w, h)),
+        Some((w, h)) if w > 0 && h > 0 => {
+            crate::limits::frame_size("size", w.into(), h.into())?;
+            Ok((w, h))
+        }
         _ => Err(Error::invalid(
             "size",
             format!("{text:?} (expected WIDTHxHEIGHT, e.g. 346x260)"),
@@ -310,6 +306,10 @@ impl Config {
             .map_err(|e| Error::format(origin, e.to_string()))?;
         config
             .run
+            .validate()
+            .map_err(|e| Error::format(origin, e.to_string()))?;
+        config
+            .camera
             .validate()
             .map_err(|e| Error::format(origin, e.to_string()))?;
         for sink in &config.sink {

@@ -377,6 +377,7 @@ pub fn bench(
     base: &Config,
     stop: &AtomicBool,
 ) -> Result<BenchResult> {
+    crate::limits::seconds("bench --seconds", seconds, false)?;
     // A receiver thread: `v2ce listen`'s, on timestamped SPIF words (the default datagram
     // size), measuring when events arrive against their own times.
     let done = Arc::new(AtomicBool::new(false));

@@ -100,6 +100,7 @@ pub fn fixed_intervals(first: i64, last: i64, fps: f64) -> Result<Vec<Interval>>
         return Ok(Vec::new());
     }
     let period = 1e6 / fps;
+    crate::limits::intervals("fps", ((last as f64 - first as f64) / period).floor() + 1.0)?;
     let boundary = |i: u64| first + (i as f64 * period).floor() as i64;
     let mut out = Vec::new();
     let mut i = 0u64;

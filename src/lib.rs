@@ -18,6 +18,7 @@ pub mod event;
 pub mod format;
 pub mod frame;
 pub mod interval;
+pub mod limits;
 pub mod listen;
 pub mod metrics;
 pub mod model;

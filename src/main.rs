@@ -695,7 +695,7 @@ struct ConvertArgs {
     /// Resample frames to WIDTHxHEIGHT (none: the source's size).
     #[arg(long, value_name = "WxH")]
     size: Option<String>,
-    /// Stop after this many frames (none: all).
+    /// Stop after this many frames (0 or none: all, as for `run`).
     #[arg(long)]
     max_frames: Option<u64>,
     /// Overwrite an existing output file.
@@ -1024,26 +1024,20 @@ fn convert(args: ConvertArgs) -> Result<()> {
     let sinks: Vec<Box<dyn v2ce::sink::Sink>> = vec![Box::new(sink)];
     let tty = std::io::stderr().is_terminal();
     let stop = v2ce::daemon::stop_on_signals()?;
-    let total = match (source.frames_hint(), args.max_frames) {
+    // 0 means no limit, as in `run` and `[run] max_frames`.
+    let max_frames = args.max_frames.filter(|&m| m > 0);
+    let total = match (source.frames_hint(), max_frames) {
         (Some(n), Some(m)) => Some(n.min(m)),
         (n, m) => n.or(m),
     };
-    let report = v2ce::convert::convert(
-        source,
-        stage1,
-        &config,
-        sinks,
-        args.max_frames,
-        &stop,
-        |r| {
-            if tty {
-                eprint!(
-                    "\r  {}",
-                    progress_line(r.frames, total, r.events, r.seconds)
-                );
-            }
-        },
-    )?;
+    let report = v2ce::convert::convert(source, stage1, &config, sinks, max_frames, &stop, |r| {
+        if tty {
+            eprint!(
+                "\r  {}",
+                progress_line(r.frames, total, r.events, r.seconds)
+            );
+        }
+    })?;
     if tty {
         eprintln!();
     }
@@ -1123,13 +1117,7 @@ fn listen(args: ListenArgs) -> Result<()> {
         check_output(out, args.force)?;
     }
     use v2ce::listen::{Listen, ListenOptions};
-    let seconds = |what: &'static str, v: f64| {
-        if v.is_finite() && (0.0..=1e7).contains(&v) {
-            Ok(std::time::Duration::from_secs_f64(v))
-        } else {
-            Err(Error::invalid(what, format!("{v} s (must be 0 to 1e7)")))
-        }
-    };
+    let seconds = |what: &'static str, v: f64| v2ce::limits::seconds(what, v, true);
     let listen = match (&args.udp, &args.tcp) {
         (_, Some(connect)) => Listen::Tcp {
             connect: connect.clone(),

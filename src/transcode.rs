@@ -150,7 +150,11 @@ impl Summary {
 
     /// Mean event rate over the span, in events per second (0 for a span of 0).
     pub fn rate_hz(&self) -> f64 {
-        match self.span_us() {
+        let span = match (self.first_t, self.last_t) {
+            (Some(a), Some(b)) => b as i128 - a as i128,
+            _ => 0,
+        };
+        match span {
             0 => 0.0,
             s => self.events as f64 / (s as f64 * 1e-6),
         }
@@ -186,10 +190,11 @@ impl std::fmt::Display for Summary {
         }
         writeln!(f, "events       {}", self.events)?;
         match (self.first_t, self.last_t) {
+            // In i128: a span across the whole i64 range overflows i64.
             (Some(a), Some(b)) => writeln!(
                 f,
                 "time span    {:.6} s ({a} .. {b} us)",
-                (b - a) as f64 * 1e-6
+                (b as i128 - a as i128) as f64 * 1e-6
             )?,
             _ => writeln!(f, "time span    -")?,
         }

@@ -47,12 +47,7 @@ pub struct VoxelGrid {
 impl VoxelGrid {
     /// An empty grid; `bins` must be at least 2 and the sensor at least 1 x 1.
     pub fn new(width: u16, height: u16, bins: usize) -> Result<Self> {
-        if width == 0 || height == 0 {
-            return Err(Error::invalid(
-                "sensor size",
-                format!("{width} x {height} has no pixel"),
-            ));
-        }
+        crate::limits::frame_size("sensor size", width.into(), height.into())?;
         if !(2..=1024).contains(&bins) {
             return Err(Error::invalid(
                 "bins",

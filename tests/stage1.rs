@@ -486,3 +486,44 @@ fn flickering_light_fires_every_cycle_on_a_still_scene() {
         "{dark} {bright} (most {most})"
     );
 }
+
+/// Noise costs time in proportion to the events drawn, not to the gap between frames: frames a
+/// year apart, and at a time near 2^62 us, finish at once with at most a second's noise; rates
+/// no pixel can fire at are refused.
+#[test]
+fn noise_work_is_bounded_for_any_gap() {
+    let (w, h) = (64u16, 48u16);
+    let cfg = Preset::Davis346.config();
+    let n = w as f64 * h as f64;
+    let per_second = (cfg.leak_hz + cfg.shot_noise_hz) * n + cfg.hot_pixel_hz * n;
+    let mut sim = PhysicsSim::new(cfg.clone(), w, h, 3).unwrap();
+    let frame = |t: i64| Frame {
+        t,
+        width: w,
+        height: h,
+        luma: vec![20_000; w as usize * h as usize],
+        exposure_us: None,
+    };
+    let mut events = Vec::new();
+    for t in [0, 40_000, 31_536_000_000_000, 1 << 62] {
+        let before = events.len();
+        sim.step(&frame(t), &mut events).unwrap();
+        // Poisson counts: far below 10x a second's mean (and every time inside the interval).
+        assert!(
+            ((events.len() - before) as f64) < 10.0 * per_second + 50.0,
+            "{} noise events after t = {t}",
+            events.len() - before
+        );
+        assert!(events[before..].iter().all(|e| e.t <= t));
+    }
+    for key in ["leak_hz", "shot_noise_hz", "hot_pixel_hz"] {
+        let mut bad = cfg.clone();
+        match key {
+            "leak_hz" => bad.leak_hz = 1e7,
+            "shot_noise_hz" => bad.shot_noise_hz = 1e7,
+            _ => bad.hot_pixel_hz = 1e7,
+        }
+        let err = PhysicsSim::new(bad, w, h, 3).err().unwrap().to_string();
+        assert!(err.contains(key), "{err}");
+    }
+}

@@ -105,6 +105,31 @@ impl Default for CameraConfig {
     }
 }
 
+impl CameraConfig {
+    /// Checks the request: a size within [`crate::limits::MAX_SIDE`], a finite positive
+    /// frame rate up to 10,000, at least one pixel format, 2 to 32 driver buffers.
+    pub fn validate(&self) -> crate::error::Result<()> {
+        use crate::error::Error;
+        crate::limits::frame_size("camera.width and camera.height", self.width, self.height)?;
+        if !(self.fps.is_finite() && self.fps > 0.0 && self.fps <= 10_000.0) {
+            return Err(Error::invalid(
+                "camera.fps",
+                format!("{} (must be above 0 and at most 10000)", self.fps),
+            ));
+        }
+        if self.formats.is_empty() {
+            return Err(Error::invalid("camera.formats", "name at least one format"));
+        }
+        if !(2..=32).contains(&self.buffers) {
+            return Err(Error::invalid(
+                "camera.buffers",
+                format!("{} (must be 2 to 32)", self.buffers),
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// A camera's capabilities, for `v2ce devices` and for negotiation.
 #[derive(Debug, Clone, PartialEq)]
 pub struct CameraInfo {

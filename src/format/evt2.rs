@@ -155,6 +155,9 @@ impl<W: Write> EventEncoder for Encoder<W> {
         self.words.reserve(events.len() * 4 + 8);
         for e in events {
             check_event(e, self.last_t, self.header.width, self.header.height)?;
+            if self.time_high.is_some() {
+                super::raw::check_gap(self.last_t, e.t, "EVT 2.0")?;
+            }
             self.last_t = e.t;
             let rel = e.t - offset;
             let target = rel >> 6;

@@ -41,9 +41,7 @@ const TIME_BITS: u32 = 24;
 const WRAP_STEP: u16 = (1 << 12) - 2;
 /// The encoder's largest forward step between time-high words.
 const MAX_STEP: i64 = 2048;
-/// The longest gap between consecutive events the encoder bridges (12.7 days: about 200,000
-/// time-high words); longer gaps are refused rather than written as gigabytes of time words.
-pub const MAX_GAP_US: i64 = 1 << 40;
+pub use super::raw::MAX_GAP_US;
 const WHAT: &str = "EVT 3.0 stream";
 
 /// Streams events out of EVT 3.0 words (the part after the header).
@@ -281,15 +279,8 @@ impl<W: Write> EventEncoder for Encoder<W> {
         let mut i = 0;
         while i < events.len() {
             let e = events[i];
-            if self.last_t != i64::MIN && e.t - self.last_t > MAX_GAP_US {
-                return Err(Error::invalid(
-                    "event time",
-                    format!(
-                        "a gap of {} us after {} us is longer than EVT 3.0 bridges ({MAX_GAP_US} us); split the stream",
-                        e.t - self.last_t,
-                        self.last_t
-                    ),
-                ));
+            if self.last_t != i64::MIN {
+                super::raw::check_gap(self.last_t, e.t, "EVT 3.0")?;
             }
             self.last_t = e.t;
             self.set_time(e.t - offset);

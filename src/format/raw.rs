@@ -20,6 +20,25 @@ use std::io::{BufRead, Read, Write};
 
 use crate::error::{Error, Result};
 
+/// The longest gap between consecutive events the RAW encoders bridge (2^40 us, 12.7 days: at
+/// most about 200,000 EVT 3.0 or 256 EVT 2.0 time-high words); longer gaps are refused rather
+/// than written as gigabytes of time words.
+pub const MAX_GAP_US: i64 = 1 << 40;
+
+/// Refuses a gap from `last` to `t` (us) longer than [`MAX_GAP_US`], for `format`'s encoder.
+pub fn check_gap(last: i64, t: i64, format: &str) -> Result<()> {
+    let gap = t.saturating_sub(last);
+    if gap > MAX_GAP_US {
+        return Err(Error::invalid(
+            "event time",
+            format!(
+                "a gap of {gap} us after {last} us is longer than {format} bridges ({MAX_GAP_US} us); split the stream"
+            ),
+        ));
+    }
+    Ok(())
+}
+
 /// The word formats.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Evt {

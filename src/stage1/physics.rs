@@ -294,6 +294,15 @@ impl PhysicsConfig {
             }
         }
         for (name, v) in [
+            ("leak_hz", self.leak_hz),
+            ("shot_noise_hz", self.shot_noise_hz),
+            ("hot_pixel_hz", self.hot_pixel_hz),
+        ] {
+            if v > MAX_NOISE_HZ {
+                return bad(format!("{name} = {v} is above {MAX_NOISE_HZ} Hz per pixel"));
+            }
+        }
+        for (name, v) in [
             ("threshold_on", self.threshold_on),
             ("threshold_off", self.threshold_off),
         ] {
@@ -515,9 +524,7 @@ impl PhysicsSim {
     /// A simulator for a `width x height` sensor; `seed` fixes mismatch, hot pixels and noise.
     pub fn new(cfg: PhysicsConfig, width: u16, height: u16, seed: u64) -> Result<Self> {
         cfg.validate()?;
-        if width == 0 || height == 0 {
-            return Err(Error::invalid("sensor size", "0 pixels".to_string()));
-        }
+        crate::limits::frame_size("frame size", width.into(), height.into())?;
         let n = width as usize * height as usize;
         let log_lut = log_table(&cfg, 1.0);
         let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed ^ 0x005E_ED0F_71C5);
@@ -927,6 +934,9 @@ impl PhysicsSim {
     fn noise(&mut self, t0: i64, frame: &Frame, out: &mut Vec<Event>) {
         let light_scale = self.photo_scale;
         let cfg = &self.cfg;
+        // Noise over the interval's last MAX_NOISE_SPAN_US at most: a longer gap is a break in
+        // the input, and drawing its noise would cost time in proportion to the gap.
+        let t0 = t0.max(frame.t.saturating_sub(MAX_NOISE_SPAN_US));
         let dt_s = (frame.t - t0) as f64 * 1e-6;
         let n = self.width as usize * self.height as usize;
         let mut rng = Xoshiro256PlusPlus::seed_from_u64(
@@ -969,6 +979,13 @@ impl PhysicsSim {
         self.stats.noise_events += (out.len() - before) as u64;
     }
 }
+
+/// The longest stretch of an interval whose noise is drawn, us (see `PhysicsSim::noise`).
+pub const MAX_NOISE_SPAN_US: i64 = 1_000_000;
+
+/// The highest noise rate per pixel a config may set, Hz (10 kHz: a DVS pixel's refractory
+/// period allows at most a few kHz).
+pub const MAX_NOISE_HZ: f64 = 10_000.0;
 
 /// The physics tier behind the [`Stage1`](super::Stage1) trait: a window of one interval.
 /// In `events` output the model's own events pass on; in `voxels` output each interval's events

@@ -85,9 +85,7 @@ impl Layout {
     /// `--height` (260) and crop / tile width (346), unused for `native`.
     pub fn new(geometry: Geometry, source: (u16, u16), height: u16, width: u16) -> Result<Self> {
         let (sw, sh) = (source.0 as usize, source.1 as usize);
-        if sw == 0 || sh == 0 {
-            return Err(Error::invalid("frame size", format!("{sw} x {sh}")));
-        }
+        crate::limits::frame_size("frame size", sw as u32, sh as u32)?;
         if geometry == Geometry::Native {
             return Ok(Layout {
                 geometry,

@@ -1,0 +1,176 @@
+//! Hostile sizes, times and counts from the command line, config files and inputs: each gets
+//! a one-line error and a non-zero exit, within a time limit and without a panic (each case
+//! panicked, aborted for memory or ran for ever before `limits` bounded it).
+
+mod common;
+
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+/// Runs v2ce with `args` for at most `limit`; returns the exit code (None: killed at the limit)
+/// and stderr.
+fn run(args: &[&str], dir: &Path, limit: Duration) -> (Option<i32>, String) {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_v2ce"))
+        .args(args)
+        .current_dir(dir)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let started = Instant::now();
+    loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            let mut err = String::new();
+            use std::io::Read;
+            child
+                .stderr
+                .take()
+                .unwrap()
+                .read_to_string(&mut err)
+                .unwrap();
+            return (status.code(), err);
+        }
+        if started.elapsed() > limit {
+            let _ = child.kill();
+            let _ = child.wait();
+            return (None, String::new());
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// The command fails with exit status 1 (an error, not a panic's 101 or a signal) within 20 s,
+/// with one error line that contains `expect`.
+fn refused(args: &[&str], dir: &Path, expect: &str) {
+    let (code, err) = run(args, dir, Duration::from_secs(20));
+    assert_eq!(code, Some(1), "{args:?}: exit {code:?}: {err}");
+    let lines: Vec<&str> = err.lines().filter(|l| l.contains("error")).collect();
+    assert_eq!(lines.len(), 1, "{args:?}: {err}");
+    assert!(lines[0].contains(expect), "{args:?}: {err}");
+    assert!(!err.contains("panicked"), "{args:?}: {err}");
+}
+
+#[test]
+fn durations_from_flags_and_config_are_bounded() {
+    let dir = common::temp_dir("hardening-durations");
+    refused(
+        &["run", "--source", "fixture", "--duration", "1e20"],
+        &dir,
+        "run.duration",
+    );
+    refused(
+        &["run", "--source", "fixture", "--stats-interval", "1e308"],
+        &dir,
+        "run.stats_interval",
+    );
+    std::fs::write(dir.join("c.toml"), "[run]\nduration = 1e20\n").unwrap();
+    refused(&["run", "--config", "c.toml"], &dir, "run.duration");
+    for s in ["inf", "1e20", "0", "nan"] {
+        refused(&["bench", "--seconds", s], &dir, "--seconds");
+    }
+}
+
+#[test]
+fn sizes_are_bounded_before_anything_is_allocated() {
+    let dir = common::temp_dir("hardening-sizes");
+    std::fs::write(
+        dir.join("b.y4m"),
+        "YUV4MPEG2 W16000 H16000 F30:1 Cmono\nFRAME\n",
+    )
+    .unwrap();
+    refused(&["convert", "b.y4m", "-o", "o.csv"], &dir, "8192");
+    refused(
+        &["bench", "--sizes", "65535x65535", "--seconds", "1"],
+        &dir,
+        "8192",
+    );
+    std::fs::write(dir.join("xy.csv"), "t_us,x,y,on\n0,60000,60000,1\n").unwrap();
+    refused(
+        &["eval", "stage2", "--events", "xy.csv", "--fps", "30"],
+        &dir,
+        "8192",
+    );
+    for (key, value) in [("fps", "nan"), ("width", "0"), ("buffers", "0")] {
+        std::fs::write(dir.join("cam.toml"), format!("[camera]\n{key} = {value}\n")).unwrap();
+        refused(
+            &["run", "--config", "cam.toml"],
+            &dir,
+            &format!("camera.{key}"),
+        );
+    }
+}
+
+#[test]
+fn counts_and_gaps_are_bounded() {
+    let dir = common::temp_dir("hardening-counts");
+    // An hour at a million intervals a second.
+    std::fs::write(
+        dir.join("long.csv"),
+        "t_us,x,y,on\n0,1,1,1\n3600000000,2,2,0\n",
+    )
+    .unwrap();
+    refused(
+        &["eval", "stage2", "--events", "long.csv", "--fps", "1000000"],
+        &dir,
+        "frame intervals",
+    );
+    // A gap of 2^63 us: EVT 2.0 would write 2^31 time-high words; both encoders refuse it.
+    std::fs::write(
+        dir.join("g.csv"),
+        "t_us,x,y,on\n0,1,1,1\n9223372036854775807,2,2,0\n",
+    )
+    .unwrap();
+    for evt in ["2", "3"] {
+        refused(
+            &["transcode", "--evt", evt, "g.csv", &format!("g{evt}.raw")],
+            &dir,
+            "longer than EVT",
+        );
+    }
+}
+
+/// `--max-frames 0` means no limit for `convert`, as it does for `run` and `[run] max_frames`.
+#[test]
+fn max_frames_zero_means_no_limit_everywhere() {
+    let dir = common::temp_dir("hardening-max-frames");
+    let frames = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/learned/frames_61x83");
+    let frames = frames.to_str().unwrap();
+    let mut lines = Vec::new();
+    for (tag, extra) in [("all", vec![]), ("zero", vec!["--max-frames", "0"])] {
+        let out = dir.join(format!("{tag}.csv"));
+        let mut args = vec![
+            "convert",
+            frames,
+            "--fps",
+            "30",
+            "-o",
+            out.to_str().unwrap(),
+        ];
+        args.extend(extra);
+        let (code, err) = run(&args, &dir, Duration::from_secs(60));
+        assert_eq!(code, Some(0), "{err}");
+        assert!(err.contains("59 frames"), "{err}");
+        lines.push(std::fs::read_to_string(&out).unwrap().lines().count());
+    }
+    assert_eq!(lines[0], lines[1]);
+}
+
+/// `info` on events spanning the whole i64 range reports the span, not a negative one.
+#[test]
+fn info_reports_a_span_across_the_whole_time_range() {
+    let dir = common::temp_dir("hardening-span");
+    std::fs::write(
+        dir.join("span.csv"),
+        "t_us,x,y,on\n-9223372036854775808,1,1,1\n9223372036854775807,2,2,0\n",
+    )
+    .unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_v2ce"))
+        .args(["info", "span.csv"])
+        .current_dir(&dir)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{text}");
+    assert!(text.contains("time span    18446744073709.55"), "{text}");
+}
