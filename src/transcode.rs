@@ -48,10 +48,20 @@ pub fn transcode(
     let mut encoder = format::create(output, format, size.0, size.1)?;
     let mut buf = Vec::with_capacity(CHUNK + 16);
     let mut events = 0u64;
+    let mut last_t = i64::MIN;
     loop {
         buf.clear();
         if decoder.read_events(&mut buf, CHUNK)? == 0 {
             break;
+        }
+        // What the input gets wrong (time going back, a pixel outside its own sensor) is the
+        // input's fault: say so, with the event's index, before the encoder would blame the
+        // output.
+        for (i, e) in buf.iter().enumerate() {
+            format::check_event(e, last_t, size.0, size.1).map_err(|err| {
+                Error::format(input, format!("event {}: {err}", events + i as u64))
+            })?;
+            last_t = e.t;
         }
         encoder.write(&buf)?;
         events += buf.len() as u64;

@@ -80,6 +80,18 @@ fn sizes_are_bounded_before_anything_is_allocated() {
     )
     .unwrap();
     refused(&["convert", "b.y4m", "-o", "o.csv"], &dir, "8192");
+    // Frames a quarter of a microsecond apart all fell on one time and were dropped.
+    let mut y4m = b"YUV4MPEG2 W4 H4 F4000000000:1 Cmono\n".to_vec();
+    for _ in 0..60 {
+        y4m.extend_from_slice(b"FRAME\n");
+        y4m.extend_from_slice(&[128u8; 16]);
+    }
+    std::fs::write(dir.join("fast.y4m"), y4m).unwrap();
+    refused(
+        &["convert", "fast.y4m", "-o", "f.csv"],
+        &dir,
+        "1,000,000 fps",
+    );
     refused(
         &["bench", "--sizes", "65535x65535", "--seconds", "1"],
         &dir,
@@ -173,4 +185,59 @@ fn info_reports_a_span_across_the_whole_time_range() {
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "{text}");
     assert!(text.contains("time span    18446744073709.55"), "{text}");
+}
+
+/// An AEDAT 4.0 file whose header points its data table inside the header (0, 1, 20) used to
+/// read as 0 events with exit 0: its packets are now read, with a warning, up to the table.
+#[test]
+fn a_data_table_position_inside_the_header_loses_no_events() {
+    use v2ce::event::Event;
+    use v2ce::format::aedat4::{self, Compression};
+    use v2ce::format::EventEncoder;
+    let dir = common::temp_dir("hardening-aedat4-table");
+    let events: Vec<Event> = (0..10_000)
+        .map(|i| Event::new(i * 10, (i % 64) as u16, (i % 48) as u16, i % 3 == 0))
+        .collect();
+    let mut w =
+        aedat4::Writer::new(std::io::Cursor::new(Vec::new()), 64, 48, Compression::Lz4).unwrap();
+    w.write(&events).unwrap();
+    w.finish().unwrap();
+    let good = w.into_inner().unwrap().into_inner();
+    let magic = aedat4::MAGIC.len();
+    let header = aedat4::read_io_header(&mut &good[magic..]).unwrap();
+    assert!(header.data_table_position > 0);
+    let packets = &good[magic + header.bytes as usize..];
+    let xml = aedat4::description(64, 48, Compression::Lz4, "v2ce");
+    for position in [0i64, 1, 20] {
+        let mut bad = aedat4::MAGIC.to_vec();
+        bad.extend(aedat4::io_header_bytes(Compression::Lz4, position, &xml));
+        bad.extend_from_slice(packets);
+        let name = format!("t{position}.aedat4");
+        std::fs::write(dir.join(&name), &bad).unwrap();
+        let out = Command::new(env!("CARGO_BIN_EXE_v2ce"))
+            .args(["info", &name])
+            .current_dir(&dir)
+            .output()
+            .unwrap();
+        let text = String::from_utf8_lossy(&out.stdout);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "{position}: {err}");
+        assert!(text.contains("events       10000"), "{position}: {text}");
+        assert!(err.contains("data table position"), "{position}: {err}");
+    }
+}
+
+/// An input whose times go back is named as the culprit, not the output being written.
+#[test]
+fn input_faults_name_the_input() {
+    let dir = common::temp_dir("hardening-blame");
+    std::fs::write(dir.join("dec.csv"), "t_us,x,y,on\n10,1,1,1\n5,2,2,0\n").unwrap();
+    let (code, err) = run(
+        &["transcode", "dec.csv", "out.aedat4"],
+        &dir,
+        Duration::from_secs(20),
+    );
+    assert_eq!(code, Some(1), "{err}");
+    assert!(err.contains("dec.csv: event 1"), "{err}");
+    assert!(!err.contains("out.aedat4"), "{err}");
 }

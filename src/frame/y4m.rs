@@ -82,6 +82,16 @@ impl Y4mSource {
         if r.num == 0 || r.den == 0 {
             return Err(Error::format(path, "frame rate 0 in the header"));
         }
+        if r.num as f64 / r.den as f64 > 1e6 {
+            return Err(Error::format(
+                path,
+                format!(
+                    "frame rate {}/{} in the header is above 1,000,000 fps: frames would share \
+                     a microsecond",
+                    r.num, r.den
+                ),
+            ));
+        }
         let full_range =
             String::from_utf8_lossy(decoder.get_raw_params()).contains("COLORRANGE=FULL");
         Ok(Y4mSource {

@@ -380,6 +380,9 @@ pub struct Reader<R> {
     event_stream: Option<StreamInfo>,
     position: u64,
     packets: u64,
+    /// The header's data table position pointed inside the header: ignored, and packets are
+    /// read until something that is not one (the table, presumably).
+    table_lost: bool,
     raw: Vec<u8>,
     data: Vec<u8>,
     pending: VecDeque<Event>,
@@ -406,7 +409,18 @@ impl<R: Read> Reader<R> {
     }
 
     fn after_magic(mut reader: R, position: u64) -> Result<Self> {
-        let header = read_io_header(&mut reader)?;
+        let mut header = read_io_header(&mut reader)?;
+        let end = position + header.bytes;
+        let table_lost =
+            header.data_table_position >= 0 && (header.data_table_position as u64) < end;
+        if table_lost {
+            tracing::warn!(
+                "AEDAT 4.0: the header's data table position {} lies inside the header (which \
+                 ends at byte {end}); reading packets until the first that is not one",
+                header.data_table_position
+            );
+            header.data_table_position = -1;
+        }
         let event_stream = header
             .streams
             .iter()
@@ -420,6 +434,7 @@ impl<R: Read> Reader<R> {
             event_stream,
             position,
             packets: 0,
+            table_lost,
             raw: Vec::new(),
             data: Vec::new(),
             pending: VecDeque::new(),
@@ -454,14 +469,19 @@ impl<R: Read> Reader<R> {
         let size = i32::from_le_bytes([head[4], head[5], head[6], head[7]]);
         let byte = self.position;
         let at = |m: String| bad(format!("packet {index} (byte {byte}): {m}"));
+        let known = self.header.streams.iter().find(|s| s.id == stream_id);
+        let plausible = size >= 0 && (size as usize) <= MAX_PACKET_BYTES && known.is_some();
+        if !plausible && self.table_lost && index > 0 {
+            tracing::warn!(
+                "AEDAT 4.0: stopped at byte {byte}, which is not a packet (the data table the \
+                 damaged header lost, presumably), after {index} packets"
+            );
+            return Ok(None);
+        }
         if size < 0 || size as usize > MAX_PACKET_BYTES {
             return Err(at(format!("size {size} out of range")));
         }
-        let stream = self
-            .header
-            .streams
-            .iter()
-            .find(|s| s.id == stream_id)
+        let stream = known
             .ok_or_else(|| at(format!("unknown stream id {stream_id}")))?
             .clone();
         self.raw.clear();
