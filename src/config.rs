@@ -149,6 +149,7 @@ impl RunConfig {
             sinks.push(SinkConfig::Tcp(TcpSinkConfig {
                 address: self.tcp.clone(),
                 format: self.tcp_format,
+                max_clients: crate::sink::tcp::DEFAULT_MAX_CLIENTS,
             }));
         }
         if !self.out.is_empty() {

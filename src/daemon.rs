@@ -212,7 +212,12 @@ pub fn run(config: &Config, stop: &AtomicBool) -> Result<Report> {
     );
     if config.run.wait_for_client {
         tracing::info!("waiting for a TCP client");
-        notify(&[sd_notify::NotifyState::Status("waiting for a TCP client")]);
+        // Up and serving: READY now, or a service manager's start timeout would kill (and
+        // restart) a daemon that only waits for its first client.
+        notify(&[
+            sd_notify::NotifyState::Ready,
+            sd_notify::NotifyState::Status("waiting for a TCP client"),
+        ]);
         while !sinks.iter().any(|s| s.stats().clients > 0) {
             if !crate::pipeline::clock::sleep_unless(Duration::from_millis(20), &|| {
                 stop.load(Ordering::Relaxed)

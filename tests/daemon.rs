@@ -458,3 +458,41 @@ fn systemd_gets_readiness_the_stats_line_and_stopping() {
     );
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// With `wait_for_client`, READY goes out while the daemon waits for its first client (a
+/// service manager's start timeout would kill it otherwise), and a stop while waiting ends it.
+#[test]
+fn a_daemon_waiting_for_a_client_is_ready() {
+    use std::os::unix::net::UnixDatagram;
+    let dir = temp_dir("daemon-notify-wait");
+    let path = dir.join("notify.sock");
+    let socket = UnixDatagram::bind(&path).unwrap();
+    socket
+        .set_read_timeout(Some(Duration::from_secs(20)))
+        .unwrap();
+    let port = {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        l.local_addr().unwrap().port()
+    };
+    let mut child = Command::new(env!("CARGO_BIN_EXE_v2ce"))
+        .args(["run", "--udp", "", "--wait-for-client", "--tcp"])
+        .arg(format!("127.0.0.1:{port}"))
+        .env("NOTIFY_SOCKET", &path)
+        .env_remove("JOURNAL_STREAM")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut buf = [0u8; 4096];
+    let n = socket.recv(&mut buf).unwrap_or(0);
+    let first = String::from_utf8_lossy(&buf[..n]).to_string();
+    // SIGTERM while it still waits: it stops.
+    unsafe { libc::kill(child.id() as i32, libc::SIGTERM) };
+    let status = child.wait().unwrap();
+    assert!(
+        first.contains("READY=1") && first.contains("waiting for a TCP client"),
+        "{first:?}"
+    );
+    assert!(status.code().is_some(), "{status:?}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -89,6 +89,10 @@ pub struct SinkStats {
     pub clients: u64,
     /// Clients disconnected for being too slow or gone (TCP only).
     pub clients_dropped: u64,
+    /// Clients refused: over `max_clients`, or no writer thread could start (TCP only).
+    pub clients_refused: u64,
+    /// Clients still being written at the stop deadline, cut off (TCP only).
+    pub clients_abandoned: u64,
     /// Events sent later than their due time (emission at event time only; see [`emit`]).
     pub events_late: u64,
     /// Times the emission clock started over after a stall (emission at event time only).

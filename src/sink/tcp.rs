@@ -16,7 +16,7 @@ use std::net::{SocketAddr, TcpListener, TcpStream, ToSocketAddrs};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use crossbeam_channel::{bounded, Sender, TrySendError};
 use flatbuffers::FlatBufferBuilder;
@@ -90,13 +90,35 @@ pub struct TcpSinkConfig {
     /// The byte stream clients receive: aedat4 (the default), evt2 or evt3.
     #[serde(default)]
     pub format: TcpFormat,
+    /// Clients served at once (one writer thread each); more are refused and counted
+    /// (default 64).
+    #[serde(default = "default_max_clients")]
+    pub max_clients: usize,
 }
+
+fn default_max_clients() -> usize {
+    DEFAULT_MAX_CLIENTS
+}
+
+/// Clients a TCP sink serves at once unless configured.
+pub const DEFAULT_MAX_CLIENTS: usize = 64;
+
+/// How long a stopping TCP sink waits for its clients' queues to be written before it cuts the
+/// remaining clients off (counted in `clients_abandoned`): within the service's stop timeout
+/// whatever the clients do.
+pub const FINISH_DEADLINE: Duration = Duration::from_secs(5);
 
 impl TcpSinkConfig {
     /// Checks the address is set.
     pub fn validate(&self) -> Result<()> {
         if self.address.is_empty() {
             return Err(bad("address is empty".into()));
+        }
+        if !(1..=4096).contains(&self.max_clients) {
+            return Err(bad(format!(
+                "max_clients = {} (must be 1 to 4096)",
+                self.max_clients
+            )));
         }
         Ok(())
     }
@@ -105,6 +127,7 @@ impl TcpSinkConfig {
     pub fn build(&self, context: &SinkContext) -> Result<Box<dyn Sink>> {
         let mut c = TcpConfig::new(&self.address, context.width, context.height);
         c.format = self.format;
+        c.max_clients = self.max_clients;
         Ok(Box::new(TcpSink::new(c)?))
     }
 }
@@ -124,6 +147,10 @@ pub struct TcpConfig {
     pub max_skipped: u64,
     /// A write to a client that blocks this long disconnects it.
     pub write_timeout: Duration,
+    /// Clients served at once; more are refused.
+    pub max_clients: usize,
+    /// How long `finish` waits for clients before cutting them off.
+    pub finish_deadline: Duration,
 }
 
 impl TcpConfig {
@@ -137,6 +164,8 @@ impl TcpConfig {
             queue_packets: 256,
             max_skipped: 1024,
             write_timeout: Duration::from_secs(2),
+            max_clients: DEFAULT_MAX_CLIENTS,
+            finish_deadline: FINISH_DEADLINE,
         }
     }
 }
@@ -217,6 +246,8 @@ struct Client {
     alive: Arc<AtomicBool>,
     skipped_in_a_row: u64,
     thread: JoinHandle<()>,
+    /// The connection, to cut off a client still being written at the stop deadline.
+    stream: Option<TcpStream>,
 }
 
 /// Serves events to TCP clients.
@@ -228,6 +259,8 @@ pub struct TcpSink {
     acceptor: Option<JoinHandle<()>>,
     /// Bytes the client threads have written.
     written: Arc<AtomicU64>,
+    /// Clients refused (at the cap, or when a writer thread could not start).
+    refused: Arc<AtomicU64>,
     stats: SinkStats,
     last_t: i64,
 }
@@ -259,6 +292,7 @@ impl TcpSink {
         let clients = Arc::new(Mutex::new(Vec::new()));
         let stop = Arc::new(AtomicBool::new(false));
         let written = Arc::new(AtomicU64::new(0));
+        let refused = Arc::new(AtomicU64::new(0));
         let acceptor = {
             let accept = Acceptor {
                 listener,
@@ -267,8 +301,10 @@ impl TcpSink {
                 clients: clients.clone(),
                 stop: stop.clone(),
                 written: written.clone(),
+                refused: refused.clone(),
                 queue: config.queue_packets,
                 timeout: config.write_timeout,
+                max_clients: config.max_clients,
             };
             std::thread::Builder::new()
                 .name("v2ce-tcp-accept".into())
@@ -282,6 +318,7 @@ impl TcpSink {
             stop,
             acceptor: Some(acceptor),
             written,
+            refused,
             stats: SinkStats::default(),
             last_t: i64::MIN,
         })
@@ -306,18 +343,33 @@ struct Acceptor {
     clients: Arc<Mutex<Vec<Client>>>,
     stop: Arc<AtomicBool>,
     written: Arc<AtomicU64>,
+    refused: Arc<AtomicU64>,
     queue: usize,
     timeout: Duration,
+    max_clients: usize,
 }
 
 impl Acceptor {
+    /// Accepts until stopped. A client over the cap, or whose writer thread cannot start (a
+    /// task limit), is closed, logged and counted; the port stays open for the next.
     fn run(self) {
         while !self.stop.load(Ordering::Relaxed) {
             match self.listener.accept() {
                 Ok((stream, peer)) => {
+                    let serving = self.clients.lock().map_or(usize::MAX, |l| {
+                        l.iter().filter(|c| !c.thread.is_finished()).count()
+                    });
+                    if serving >= self.max_clients {
+                        self.refused.fetch_add(1, Ordering::Relaxed);
+                        tracing::warn!(
+                            "TCP client {peer} refused: {serving} clients already (max_clients)"
+                        );
+                        continue;
+                    }
                     let Ok(encoder) = ClientEncoder::new(self.format, self.size) else {
                         return;
                     };
+                    let cut_off = stream.try_clone().ok();
                     let (tx, rx) = bounded::<Arc<[Event]>>(self.queue);
                     let alive = Arc::new(AtomicBool::new(true));
                     let flag = alive.clone();
@@ -328,14 +380,24 @@ impl Acceptor {
                             let _ = serve(stream, encoder, rx, timeout, &written);
                             flag.store(false, Ordering::Relaxed);
                         });
-                    match (thread, self.clients.lock()) {
-                        (Ok(thread), Ok(mut list)) => list.push(Client {
-                            tx,
-                            alive,
-                            skipped_in_a_row: 0,
-                            thread,
-                        }),
-                        _ => return,
+                    match thread {
+                        Ok(thread) => match self.clients.lock() {
+                            Ok(mut list) => list.push(Client {
+                                tx,
+                                alive,
+                                skipped_in_a_row: 0,
+                                thread,
+                                stream: cut_off,
+                            }),
+                            Err(_) => return,
+                        },
+                        Err(e) => {
+                            self.refused.fetch_add(1, Ordering::Relaxed);
+                            tracing::warn!(
+                                "TCP client {peer} refused: no writer thread ({e}); still \
+                                 accepting"
+                            );
+                        }
                     }
                 }
                 Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
@@ -446,9 +508,37 @@ impl Sink for TcpSink {
             Ok(mut list) => std::mem::take(&mut *list),
             Err(_) => Vec::new(),
         };
-        for c in clients {
-            drop(c.tx);
-            let _ = c.thread.join();
+        // Every queue is closed at once, then written within one deadline for all.
+        let clients: Vec<(JoinHandle<()>, Option<TcpStream>)> = clients
+            .into_iter()
+            .map(|c| {
+                drop(c.tx);
+                (c.thread, c.stream)
+            })
+            .collect();
+        let deadline = Instant::now() + self.config.finish_deadline;
+        while Instant::now() < deadline && clients.iter().any(|(t, _)| !t.is_finished()) {
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        for (thread, stream) in clients {
+            if thread.is_finished() {
+                let _ = thread.join();
+                continue;
+            }
+            // Still writing at the deadline (a client reading slowly): cut it off. Its
+            // writer's next write fails and the thread ends; it is not waited for.
+            self.stats.clients_abandoned += 1;
+            if let Some(s) = stream {
+                let _ = s.shutdown(std::net::Shutdown::Both);
+            }
+        }
+        if self.stats.clients_abandoned > 0 {
+            tracing::warn!(
+                "{}: {} client(s) still being written after {:?}, cut off",
+                self.describe(),
+                self.stats.clients_abandoned,
+                self.config.finish_deadline
+            );
         }
         self.stats.clients = 0;
         Ok(())
@@ -458,6 +548,7 @@ impl Sink for TcpSink {
         let mut s = self.stats;
         s.clients = self.client_count() as u64;
         s.bytes_sent = self.written.load(Ordering::Relaxed);
+        s.clients_refused = self.refused.load(Ordering::Relaxed);
         s
     }
 }
@@ -536,6 +627,61 @@ mod tests {
             (s.events_sent, s.events_dropped, s.messages_dropped),
             (20_000, 0, 0)
         );
+    }
+
+    #[test]
+    fn clients_over_the_cap_are_refused_and_counted_and_the_port_stays_open() {
+        let mut config = TcpConfig::new("127.0.0.1:0", 64, 48);
+        config.max_clients = 1;
+        let mut sink = TcpSink::new(config).unwrap();
+        let addr = sink.local_addr();
+        let first = TcpStream::connect(addr).unwrap();
+        wait_for_clients(&sink, 1);
+        // The second is closed at once: it reads end of stream, not a header.
+        let mut second = TcpStream::connect(addr).unwrap();
+        second
+            .set_read_timeout(Some(Duration::from_secs(10)))
+            .unwrap();
+        let mut buf = [0u8; 16];
+        use std::io::Read;
+        assert_eq!(second.read(&mut buf).unwrap_or(0), 0);
+        assert_eq!(sink.stats().clients_refused, 1);
+        // Once the first leaves, the next is served.
+        drop(first);
+        let events = vec![Event::new(1, 1, 1, true)];
+        for _ in 0..1000 {
+            sink.send(&events).unwrap();
+            if sink.client_count() == 0 {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        let third = TcpStream::connect(addr).unwrap();
+        wait_for_clients(&sink, 1);
+        drop(third);
+        sink.finish().unwrap();
+    }
+
+    #[test]
+    fn a_stop_cuts_off_a_client_that_reads_too_slowly_at_the_deadline() {
+        let mut config = TcpConfig::new("127.0.0.1:0", 64, 48);
+        // Writes never time out here: only the stop deadline ends the client.
+        config.write_timeout = Duration::from_secs(3600);
+        config.finish_deadline = Duration::from_millis(300);
+        config.queue_packets = 1024;
+        let mut sink = TcpSink::new(config).unwrap();
+        // A client that connects and never reads: its queue cannot drain.
+        let _stalled = TcpStream::connect(sink.local_addr()).unwrap();
+        wait_for_clients(&sink, 1);
+        let n = 200 * aedat4::PACKET_EVENTS;
+        let events: Vec<Event> = (0..n as i64)
+            .map(|i| Event::new(i, (i % 64) as u16, (i % 48) as u16, true))
+            .collect();
+        for chunk in events.chunks(aedat4::PACKET_EVENTS) {
+            sink.send(chunk).unwrap();
+        }
+        sink.finish().unwrap();
+        assert_eq!(sink.stats().clients_abandoned, 1, "{:?}", sink.stats());
     }
 
     #[test]
