@@ -35,6 +35,10 @@ pub enum Error {
     /// A run (conversion, daemon) that ended by a failure; the message says which part failed.
     #[error("{0}")]
     Run(String),
+    /// A command stopped by a signal before its input ended; what it wrote is complete up to
+    /// there (exit status 130).
+    #[error("{0}")]
+    Interrupted(String),
     /// An argument or configuration value that cannot be used.
     #[error("invalid {what}: {message}")]
     Invalid {

@@ -795,6 +795,10 @@ fn main() -> ExitCode {
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
+        Err(Error::Interrupted(why)) => {
+            eprintln!("v2ce: interrupted: {why}");
+            ExitCode::from(130)
+        }
         Err(e) => {
             eprintln!("v2ce: error: {e}");
             ExitCode::FAILURE
@@ -1076,6 +1080,13 @@ fn convert(args: ConvertArgs) -> Result<()> {
             report.repaired.negative,
             report.repaired.clamped
         );
+    }
+    if stop.load(std::sync::atomic::Ordering::Relaxed) {
+        return Err(Error::Interrupted(format!(
+            "{} holds the events of the {} frames read before the signal, not the whole input",
+            args.output.display(),
+            report.frames
+        )));
     }
     Ok(())
 }

@@ -241,3 +241,57 @@ fn input_faults_name_the_input() {
     assert!(err.contains("dec.csv: event 1"), "{err}");
     assert!(!err.contains("out.aedat4"), "{err}");
 }
+
+/// A `convert` stopped by SIGINT says so and exits 130; what it wrote is a complete file.
+#[test]
+fn an_interrupted_convert_exits_130_with_a_readable_file() {
+    let dir = common::temp_dir("hardening-interrupt");
+    let (w, h, n) = (160usize, 120usize, 3000usize);
+    let mut y4m = format!("YUV4MPEG2 W{w} H{h} F30:1 Cmono\n").into_bytes();
+    for i in 0..n {
+        y4m.extend_from_slice(b"FRAME\n");
+        y4m.extend((0..w * h).map(|p| ((p % w + 3 * i) % 200 + 20) as u8));
+    }
+    std::fs::write(dir.join("long.y4m"), y4m).unwrap();
+    let out = dir.join("out.csv");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_v2ce"))
+        .args(["convert", "long.y4m", "-o", "out.csv"])
+        .current_dir(&dir)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // The output exists once the signal handlers are in place.
+    for _ in 0..2000 {
+        if out.exists() {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    std::thread::sleep(Duration::from_millis(100));
+    unsafe { libc::kill(child.id() as i32, libc::SIGINT) };
+    let status = child.wait().unwrap();
+    let mut err = String::new();
+    use std::io::Read;
+    child
+        .stderr
+        .take()
+        .unwrap()
+        .read_to_string(&mut err)
+        .unwrap();
+    assert_eq!(status.code(), Some(130), "{err}");
+    assert!(
+        err.contains("interrupted: ") && err.contains("out.csv"),
+        "{err}"
+    );
+    let info = Command::new(env!("CARGO_BIN_EXE_v2ce"))
+        .args(["info", "out.csv"])
+        .current_dir(&dir)
+        .output()
+        .unwrap();
+    assert!(
+        info.status.success(),
+        "{}",
+        String::from_utf8_lossy(&info.stderr)
+    );
+}

@@ -69,7 +69,12 @@ fn the_unit_is_hardened() {
     }
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let unit = std::fs::read_to_string(root.join("systemd/v2ce.service")).unwrap();
-    for key in ["TasksMax=", "TimeoutStopSec=20s", "PrivateMounts=yes", "ProcSubset=pid"] {
+    for key in [
+        "TasksMax=",
+        "TimeoutStopSec=20s",
+        "PrivateMounts=yes",
+        "ProcSubset=pid",
+    ] {
         assert!(unit.contains(key), "the unit lacks {key}");
     }
     let dir = std::env::temp_dir().join(format!("v2ce-unit-sec-{}", std::process::id()));
