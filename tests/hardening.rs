@@ -295,3 +295,74 @@ fn an_interrupted_convert_exits_130_with_a_readable_file() {
         String::from_utf8_lossy(&info.stderr)
     );
 }
+
+/// An AEDAT 4.0 file whose writer was killed (no data table, the last packet cut anywhere, even
+/// inside its header) reads up to the last whole packet with a warning; a finished file cut
+/// short is still an error.
+#[test]
+fn an_unfinished_aedat4_file_reads_to_its_last_whole_packet() {
+    use v2ce::event::Event;
+    use v2ce::format::aedat4::{self, Compression};
+    use v2ce::format::EventEncoder;
+    let dir = common::temp_dir("hardening-aedat4-unfinished");
+    let per = aedat4::PACKET_EVENTS;
+    let events: Vec<Event> = (0..(3 * per + 100) as i64)
+        .map(|i| Event::new(i * 10, (i % 64) as u16, (i % 48) as u16, i % 3 == 0))
+        .collect();
+    let mut w =
+        aedat4::Writer::new(std::io::Cursor::new(Vec::new()), 64, 48, Compression::Lz4).unwrap();
+    w.write(&events).unwrap();
+    w.finish().unwrap();
+    let good = w.into_inner().unwrap().into_inner();
+    let magic = aedat4::MAGIC.len();
+    let header = aedat4::read_io_header(&mut &good[magic..]).unwrap();
+    let start = magic + header.bytes as usize;
+    let table = header.data_table_position as usize;
+    // The header as a writer leaves it until it finishes: no data table yet.
+    let xml = aedat4::description(64, 48, Compression::Lz4, "v2ce");
+    let mut unfinished = aedat4::MAGIC.to_vec();
+    unfinished.extend(aedat4::io_header_bytes(Compression::Lz4, -1, &xml));
+    let head_len = unfinished.len();
+    unfinished.extend_from_slice(&good[start..table]);
+    // Packet boundaries: walk the sizes.
+    let mut bounds = vec![head_len];
+    let mut at = head_len;
+    while at < unfinished.len() {
+        let size = i32::from_le_bytes(unfinished[at + 4..at + 8].try_into().unwrap()) as usize;
+        at += 8 + size;
+        bounds.push(at);
+    }
+    assert_eq!(bounds.len(), 5, "4 packets");
+    let info = |name: &str, bytes: &[u8]| {
+        std::fs::write(dir.join(name), bytes).unwrap();
+        let out = Command::new(env!("CARGO_BIN_EXE_v2ce"))
+            .args(["info", name])
+            .current_dir(&dir)
+            .output()
+            .unwrap();
+        (
+            out.status.success(),
+            String::from_utf8_lossy(&out.stdout).to_string(),
+            String::from_utf8_lossy(&out.stderr).to_string(),
+        )
+    };
+    // Cut inside the fourth packet's body, and inside its 8-byte header.
+    for (tag, cut) in [("body", bounds[3] + 100), ("head", bounds[3] + 5)] {
+        let (ok, text, err) = info(&format!("{tag}.aedat4"), &unfinished[..cut]);
+        assert!(ok, "{tag}: {err}");
+        assert!(
+            text.contains(&format!("events       {}", 3 * per)),
+            "{tag}: {text}"
+        );
+        assert!(err.contains("unfinished file"), "{tag}: {err}");
+    }
+    // Whole packets only: every event, no warning.
+    let (ok, text, err) = info("whole.aedat4", &unfinished);
+    assert!(
+        ok && text.contains(&format!("events       {}", events.len())),
+        "{text}{err}"
+    );
+    // A finished file (with its table) cut short is damaged, not unfinished.
+    let (ok, _, err) = info("cut.aedat4", &good[..bounds[3] - head_len + start + 100]);
+    assert!(!ok, "{err}");
+}

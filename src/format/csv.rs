@@ -138,6 +138,10 @@ impl<W: Write> EventEncoder for Encoder<W> {
     fn finish(&mut self) -> Result<()> {
         self.writer.flush().map_err(output_error)
     }
+
+    fn flush(&mut self) -> Result<()> {
+        self.writer.flush().map_err(output_error)
+    }
 }
 
 #[cfg(test)]

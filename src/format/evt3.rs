@@ -318,6 +318,10 @@ impl<W: Write> EventEncoder for Encoder<W> {
         self.header(0)?;
         self.writer.flush().map_err(output_error)
     }
+
+    fn flush(&mut self) -> Result<()> {
+        self.writer.flush().map_err(output_error)
+    }
 }
 
 #[cfg(test)]

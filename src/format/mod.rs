@@ -49,6 +49,13 @@ pub trait EventEncoder {
 
     /// Writes whatever the format needs at the end and flushes. Call once, last.
     fn finish(&mut self) -> Result<()>;
+
+    /// Hands what is held to the operating system, in whole units of the format (events held
+    /// for a packet become a shorter packet), so a process killed later loses nothing written
+    /// before. Formats that buffer nothing of their own do nothing.
+    fn flush(&mut self) -> Result<()> {
+        Ok(())
+    }
 }
 
 /// Checks what every encoder and sink requires of an event: time at or after `last_t`, and a
@@ -257,6 +264,12 @@ impl EventEncoder for FileEncoder {
     fn finish(&mut self) -> Result<()> {
         self.inner
             .finish()
+            .map_err(|e| Error::format(&self.path, e.to_string()))
+    }
+
+    fn flush(&mut self) -> Result<()> {
+        self.inner
+            .flush()
             .map_err(|e| Error::format(&self.path, e.to_string()))
     }
 }

@@ -1,6 +1,7 @@
 //! An event file as a sink: any format of [`crate::format`], picked by extension.
 
 use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
 
 use super::{Sink, SinkContext, SinkStats};
 use crate::error::{Error, Result};
@@ -43,14 +44,16 @@ impl FileSinkConfig {
     /// Creates the file.
     pub fn build(&self, context: &SinkContext) -> Result<Box<dyn Sink>> {
         let path = Path::new(&self.path);
-        Ok(Box::new(FileSink::create(
-            path,
-            self.format()?,
-            context.width,
-            context.height,
-        )?))
+        let sink = FileSink::create(path, self.format()?, context.width, context.height)?;
+        Ok(Box::new(sink.with_flush_period(FLUSH_PERIOD)))
     }
 }
+
+/// How often the daemon's file outputs hand what they hold to the operating system: a daemon
+/// killed (SIGKILL, power loss) loses at most this much of its events, and what it wrote before
+/// is whole packets that readers take (AEDAT 4.0 events held for a packet go out as a shorter
+/// one).
+pub const FLUSH_PERIOD: Duration = Duration::from_secs(1);
 
 /// Writes events to a file.
 pub struct FileSink {
@@ -58,6 +61,10 @@ pub struct FileSink {
     format: Format,
     encoder: Box<dyn EventEncoder + Send>,
     stats: SinkStats,
+    /// Flush at most this long after the last flush (the daemon's outputs; `convert` writes
+    /// whole packets only, so its files do not depend on timing).
+    flush_every: Option<Duration>,
+    last_flush: Instant,
 }
 
 impl FileSink {
@@ -68,7 +75,16 @@ impl FileSink {
             format,
             encoder: format::create(path, format, width, height)?,
             stats: SinkStats::default(),
+            flush_every: None,
+            last_flush: Instant::now(),
         })
+    }
+
+    /// Flushes (see [`EventEncoder::flush`]) whenever events arrive `period` or more after the
+    /// last flush.
+    pub fn with_flush_period(mut self, period: Duration) -> Self {
+        self.flush_every = Some(period);
+        self
     }
 }
 
@@ -82,6 +98,13 @@ impl Sink for FileSink {
         self.encoder.write(events)?;
         self.stats.events_sent += events.len() as u64;
         self.stats.messages_sent += 1;
+        if self
+            .flush_every
+            .is_some_and(|p| self.last_flush.elapsed() >= p)
+        {
+            self.encoder.flush()?;
+            self.last_flush = Instant::now();
+        }
         Ok(())
     }
 

@@ -459,11 +459,39 @@ impl<R: Read> Reader<R> {
             return Ok(None);
         }
         let index = self.packets;
+        // A file without its data table was not finished (its writer was killed, the machine
+        // lost power): a last packet cut short is what was being written then, and everything
+        // before it is whole.
+        let unfinished = table < 0;
+        let cut = |byte: u64, what: &str| {
+            tracing::warn!(
+                "AEDAT 4.0: the input ends inside packet {index} (byte {byte}, {what}) and has no \
+                 data table: an unfinished file; the {index} whole packets before it are read"
+            );
+        };
         let mut head = [0u8; 8];
-        match super::read_words(&mut self.reader, &mut head, 8, index, WHAT)? {
+        let mut got = 0;
+        while got < 8 {
+            match self.reader.read(&mut head[got..]) {
+                Ok(0) => break,
+                Ok(k) => got += k,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(bad(format!("packet {index}: {e}"))),
+            }
+        }
+        match got {
             0 => return Ok(None),
             8 => {}
-            _ => unreachable!("read_words returns whole words"),
+            _ if unfinished => {
+                cut(self.position, "its header");
+                return Ok(None);
+            }
+            _ => {
+                return Err(bad(format!(
+                    "packet {index} (byte {}): the input ends inside its header",
+                    self.position
+                )))
+            }
         }
         let stream_id = i32::from_le_bytes([head[0], head[1], head[2], head[3]]);
         let size = i32::from_le_bytes([head[4], head[5], head[6], head[7]]);
@@ -490,6 +518,10 @@ impl<R: Read> Reader<R> {
             .read_to_end(&mut self.raw)
             .map_err(|e| at(e.to_string()))?;
         if got != size as usize {
+            if unfinished {
+                cut(byte, &format!("{got} of its {size} bytes"));
+                return Ok(None);
+            }
             return Err(at(format!("cut short: {got} of {size} bytes")));
         }
         self.position += 8 + size as u64;
@@ -590,6 +622,8 @@ pub struct Writer<W: Write + Seek> {
     pending: Vec<Event>,
     fbb: FlatBufferBuilder<'static>,
     compressed: Vec<u8>,
+    /// One packet, header and body, as written.
+    packet: Vec<u8>,
     last_t: i64,
     finished: bool,
 }
@@ -622,6 +656,7 @@ impl<W: Write + Seek> Writer<W> {
             pending: Vec::with_capacity(PACKET_EVENTS),
             fbb: FlatBufferBuilder::new(),
             compressed: Vec::new(),
+            packet: Vec::new(),
             last_t: i64::MIN,
             finished: false,
         })
@@ -635,12 +670,13 @@ impl<W: Write + Seek> Writer<W> {
         self.compression
             .compress(self.fbb.finished_data(), &mut self.compressed)?;
         let size = self.compressed.len() as i32;
-        let mut head = [0u8; 8];
-        head[4..].copy_from_slice(&size.to_le_bytes());
-        self.writer.write_all(&head).map_err(output_error)?;
-        self.writer
-            .write_all(&self.compressed)
-            .map_err(output_error)?;
+        // Header and body in one write: a packet reaches the file whole or not at all (as far
+        // as one write does), so a killed writer leaves whole packets.
+        self.packet.clear();
+        self.packet.extend_from_slice(&[0u8; 4]);
+        self.packet.extend_from_slice(&size.to_le_bytes());
+        self.packet.extend_from_slice(&self.compressed);
+        self.writer.write_all(&self.packet).map_err(output_error)?;
         self.table.push(DataDefinition {
             byte_offset: self.position as i64 + 8,
             stream_id: 0,
@@ -692,6 +728,14 @@ impl<W: Write + Seek> EventEncoder for Writer<W> {
             }
         }
         Ok(())
+    }
+
+    fn flush(&mut self) -> Result<()> {
+        if self.finished {
+            return Ok(());
+        }
+        self.flush_packet()?;
+        self.writer.flush().map_err(output_error)
     }
 
     fn finish(&mut self) -> Result<()> {
