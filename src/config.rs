@@ -167,8 +167,8 @@ impl RunConfig {
                 format!("{} (must be > 0)", self.replay_speed),
             );
         }
-        if !(self.fps.is_finite() && self.fps >= 0.0) {
-            return bad("run.fps", format!("{} (must be >= 0)", self.fps));
+        if self.fps != 0.0 {
+            crate::limits::frame_rate("run.fps", self.fps)?;
         }
         crate::limits::seconds("run.duration", self.duration, true)?;
         crate::limits::seconds("run.stats_interval", self.stats_interval, false)?;

@@ -45,6 +45,22 @@ pub fn seconds(what: &'static str, value: f64, zero: bool) -> Result<Duration> {
     Ok(Duration::from_secs_f64(value))
 }
 
+/// Checks a frame rate of `what`: finite, above 0, at most 1,000,000 fps (frames would share a
+/// microsecond), and a period of at most [`MAX_SECONDS`].
+pub fn frame_rate(what: &'static str, fps: f64) -> Result<()> {
+    if !(fps.is_finite() && fps > 0.0 && fps <= 1e6 && 1.0 / fps <= MAX_SECONDS) {
+        return Err(Error::invalid(
+            what,
+            format!(
+                "{} frames per second: must be above {:e} and at most 1,000,000",
+                number(fps),
+                1.0 / MAX_SECONDS
+            ),
+        ));
+    }
+    Ok(())
+}
+
 /// `v` as a person reads it: plain, or in scientific notation when huge or tiny.
 fn number(v: f64) -> String {
     if v != 0.0 && v.is_finite() && !(1e-4..1e9).contains(&v.abs()) {

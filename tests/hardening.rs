@@ -366,3 +366,33 @@ fn an_unfinished_aedat4_file_reads_to_its_last_whole_packet() {
     let (ok, _, err) = info("cut.aedat4", &good[..bounds[3] - head_len + start + 100]);
     assert!(!ok, "{err}");
 }
+
+/// Frame rates that are no rate are refused as such (they were taken as "none", or gave
+/// "give --fps" though one was given); a folder named like an event file is called a folder.
+#[test]
+fn bad_frame_rates_and_folders_get_their_own_errors() {
+    let dir = common::temp_dir("hardening-fps");
+    let frames = dir.join("frames");
+    std::fs::create_dir_all(&frames).unwrap();
+    for i in 0..3 {
+        image::GrayImage::from_fn(8, 6, |x, _| image::Luma([(x * 20 + i * 5) as u8]))
+            .save(frames.join(format!("f{i}.png")))
+            .unwrap();
+    }
+    for fps in ["0", "-1", "nan", "inf", "1e-300", "1e7"] {
+        refused(
+            &["convert", "frames", "-o", "o.csv", &format!("--fps={fps}")],
+            &dir,
+            "frames per second",
+        );
+    }
+    refused(
+        &["convert", "frames", "-o", "o.csv"],
+        &dir,
+        "give a frame rate (--fps for convert, [run] fps for the daemon)",
+    );
+    std::fs::write(dir.join("r.toml"), "[run]\nfps = 1e-300\n").unwrap();
+    refused(&["run", "--config", "r.toml"], &dir, "run.fps");
+    std::fs::create_dir_all(dir.join("x.aedat4")).unwrap();
+    refused(&["info", "x.aedat4"], &dir, "a folder, not an event file");
+}

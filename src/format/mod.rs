@@ -205,6 +205,9 @@ impl EventDecoder for MemoryDecoder {
 /// Opens an event file for streaming: `.aedat4`, `.raw` (EVT 2.0 or 3.0, from its header),
 /// `.csv`, `.npz`, `.h5`/`.hdf5` (DSEC layout), or an IJRR `events.txt` (read whole).
 pub fn open(path: &Path) -> Result<Box<dyn EventDecoder + Send>> {
+    if path.is_dir() {
+        return Err(Error::format(path, "a folder, not an event file"));
+    }
     let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
     let mut reader = BufReader::with_capacity(1 << 16, file);
     let wrap = |e: Error| Error::format(path, e.to_string());

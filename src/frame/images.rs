@@ -136,6 +136,9 @@ impl ImageFolder {
         fps: Option<f64>,
         color: ColorSpace,
     ) -> Result<Self> {
+        if let Some(f) = fps {
+            crate::limits::frame_rate("fps", f)?;
+        }
         let (ijrr, times) = match list {
             Some((p, FrameList::Images)) => (p.to_path_buf(), PathBuf::new()),
             Some((p, FrameList::Times)) => (PathBuf::new(), p.to_path_buf()),
@@ -177,11 +180,12 @@ impl ImageFolder {
                     })
                     .collect::<Result<_>>()?
             } else {
-                let fps = fps.filter(|f| f.is_finite() && *f > 0.0).ok_or_else(|| {
+                let fps = fps.ok_or_else(|| {
                     Error::invalid(
                         "frame times",
                         format!(
-                            "{} has no images.txt or times.txt: give --fps",
+                            "{} has no images.txt or times.txt: give a frame rate (--fps for \
+                             convert, [run] fps for the daemon)",
                             folder.display()
                         ),
                     )

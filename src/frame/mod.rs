@@ -104,6 +104,9 @@ pub struct SourceOptions {
 /// any other file as a video through the `ffmpeg` command-line tool. A text file that is none of
 /// these is refused rather than handed to ffmpeg (which would render its text as frames).
 pub fn open(path: &Path, options: &SourceOptions) -> Result<Box<dyn FrameSource>> {
+    if let Some(f) = options.fps {
+        crate::limits::frame_rate("fps", f)?;
+    }
     if path.is_dir() {
         return Ok(Box::new(images::ImageFolder::open(
             path,
