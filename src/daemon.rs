@@ -269,10 +269,18 @@ pub fn run(config: &Config, stop: &AtomicBool) -> Result<Report> {
     }
     for sink in &s.sinks {
         tracing::info!(
-            "{}: {} events sent, {} dropped{}",
+            "{}: {} events sent, {} dropped{}{}",
             sink.sink,
             sink.stats.events_sent,
             sink.stats.events_dropped,
+            if sink.stats.events_refused > 0 {
+                format!(
+                    ", {} refused (no receiver on the port)",
+                    sink.stats.events_refused
+                )
+            } else {
+                String::new()
+            },
             sink.failed
                 .as_ref()
                 .map(|f| format!(" (failed: {f})"))

@@ -79,6 +79,10 @@ pub struct SinkStats {
     pub events_sent: u64,
     /// Events dropped (a datagram that could not be sent, a packet no client could take).
     pub events_dropped: u64,
+    /// Events in datagrams the kernel refused because the receiver's port was closed (UDP: an
+    /// ICMP port-unreachable came back for an earlier datagram); `events_sent` counts what was
+    /// handed to the kernel, which UDP cannot follow further.
+    pub events_refused: u64,
     /// Datagrams or packets sent (TCP: per client).
     pub messages_sent: u64,
     /// Datagrams or packets dropped (TCP: per client).
