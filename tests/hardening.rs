@@ -396,3 +396,26 @@ fn bad_frame_rates_and_folders_get_their_own_errors() {
     std::fs::create_dir_all(dir.join("x.aedat4")).unwrap();
     refused(&["info", "x.aedat4"], &dir, "a folder, not an event file");
 }
+
+/// A file ffprobe cannot read gets one error line (ffprobe's own several lines joined).
+#[test]
+fn an_unreadable_video_is_one_error_line() {
+    if Command::new("ffprobe").arg("-version").output().is_err() {
+        eprintln!("SKIPPED an_unreadable_video_is_one_error_line: no ffprobe");
+        return;
+    }
+    let dir = common::temp_dir("hardening-video");
+    // Not text (that is refused before ffprobe), not a video.
+    let noise: Vec<u8> = (0..3000u32)
+        .map(|i| (i.wrapping_mul(2_654_435_761) >> 13) as u8)
+        .collect();
+    std::fs::write(dir.join("bad.mp4"), noise).unwrap();
+    let (code, err) = run(
+        &["convert", "bad.mp4", "-o", "o.csv"],
+        &dir,
+        Duration::from_secs(30),
+    );
+    assert_eq!(code, Some(1), "{err}");
+    assert_eq!(err.trim_end().lines().count(), 1, "{err}");
+    assert!(err.contains("not a readable video (ffprobe: "), "{err}");
+}

@@ -72,9 +72,24 @@ fn probe_size(path: &Path) -> Result<((u16, u16), Option<u64>)> {
             path,
             format!(
                 "not a readable video (ffprobe: {})",
-                String::from_utf8_lossy(&out.stderr).trim()
+                one_line(&String::from_utf8_lossy(&out.stderr))
             ),
         )),
+    }
+}
+
+/// A tool's messages as one line: lines joined with " | ", blank ones dropped, at most 400
+/// characters (errors stay one line on the terminal and in the journal).
+fn one_line(text: &str) -> String {
+    let joined = text
+        .lines()
+        .map(str::trim)
+        .filter(|l| !l.is_empty())
+        .collect::<Vec<_>>()
+        .join(" | ");
+    match joined.char_indices().nth(400) {
+        Some((at, _)) => format!("{}...", &joined[..at]),
+        None => joined,
     }
 }
 
@@ -178,7 +193,7 @@ impl FfmpegSource {
         let tail = self
             .stderr_tail
             .lock()
-            .map(|t| t.join(" | "))
+            .map(|t| one_line(&t.join("\n")))
             .unwrap_or_default();
         Error::format(&self.path, format!("{what} (ffmpeg: {tail})"))
     }
