@@ -22,6 +22,20 @@ fn analyzer_or_skip(test: &str) -> bool {
     false
 }
 
+/// The unit written to a fresh folder with its ExecStart pointed at the binary under test (the
+/// analyzer checks that the program exists); returns the folder and the unit's path.
+fn unit_for_test(unit: &str, tag: &str) -> (std::path::PathBuf, std::path::PathBuf) {
+    let dir = std::env::temp_dir().join(format!("v2ce-unit-{tag}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("v2ce.service");
+    std::fs::write(
+        &path,
+        unit.replace("/usr/local/bin/v2ce", env!("CARGO_BIN_EXE_v2ce")),
+    )
+    .unwrap();
+    (dir, path)
+}
+
 #[test]
 fn the_unit_file_verifies_cleanly() {
     if !analyzer_or_skip("the_unit_file_verifies_cleanly") {
@@ -42,14 +56,7 @@ fn the_unit_file_verifies_cleanly() {
     ] {
         assert!(unit.contains(key), "the unit lacks {key}");
     }
-    let dir = std::env::temp_dir().join(format!("v2ce-unit-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let path = dir.join("v2ce.service");
-    std::fs::write(
-        &path,
-        unit.replace("/usr/local/bin/v2ce", env!("CARGO_BIN_EXE_v2ce")),
-    )
-    .unwrap();
+    let (dir, path) = unit_for_test(&unit, "verify");
     let out = Command::new("systemd-analyze")
         .arg("verify")
         .arg(&path)
@@ -84,14 +91,7 @@ fn the_unit_is_hardened() {
     ] {
         assert!(unit.contains(key), "the unit lacks {key}");
     }
-    let dir = std::env::temp_dir().join(format!("v2ce-unit-sec-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let path = dir.join("v2ce.service");
-    std::fs::write(
-        &path,
-        unit.replace("/usr/local/bin/v2ce", env!("CARGO_BIN_EXE_v2ce")),
-    )
-    .unwrap();
+    let (dir, path) = unit_for_test(&unit, "security");
     let out = Command::new("systemd-analyze")
         .args(["security", "--offline=true", "--threshold=15"])
         .arg(&path)
