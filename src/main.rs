@@ -1021,7 +1021,8 @@ fn convert(args: ConvertArgs) -> Result<()> {
         h
     );
     let fmt = args.encoding.format_for(&args.output)?;
-    let sink = v2ce::sink::file::FileSink::create(&args.output, fmt, w, h)?;
+    let output = v2ce::format::PartialOutput::new(&args.output);
+    let sink = v2ce::sink::file::FileSink::create(output.writing(), fmt, w, h)?;
     if let Some(path) = &args.write_voxels {
         stage1 = Box::new(v2ce::convert::VoxelTap::new(stage1, path)?);
     }
@@ -1041,7 +1042,8 @@ fn convert(args: ConvertArgs) -> Result<()> {
                 progress_line(r.frames, total, r.events, r.seconds)
             );
         }
-    })?;
+    })
+    .map_err(|e| output.explain(e))?;
     if tty {
         eprintln!();
     }
@@ -1082,13 +1084,12 @@ fn convert(args: ConvertArgs) -> Result<()> {
         );
     }
     if stop.load(std::sync::atomic::Ordering::Relaxed) {
-        return Err(Error::Interrupted(format!(
-            "{} holds the events of the {} frames read before the signal, not the whole input",
-            args.output.display(),
+        return Err(output.explain(Error::Interrupted(format!(
+            "stopped by a signal after {} frames, before the input ended",
             report.frames
-        )));
+        ))));
     }
-    Ok(())
+    output.commit()
 }
 
 /// Refuses to replace an existing file unless `force` (the `--force` flag).

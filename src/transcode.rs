@@ -30,7 +30,8 @@ fn output_size(input: &Path, size: Option<(u16, u16)>) -> Result<(u16, u16)> {
     }
 }
 
-/// Converts `input` to `output` in `format`, streaming. `size` overrides the sensor size.
+/// Converts `input` to `output` in `format`, streaming. `size` overrides the sensor size. The
+/// output gets its name only when complete (see [`format::PartialOutput`]).
 pub fn transcode(
     input: &Path,
     output: &Path,
@@ -45,6 +46,19 @@ pub fn transcode(
     }
     let size = output_size(input, size)?;
     let mut decoder = format::open(input)?;
+    let out = format::PartialOutput::new(output);
+    let report = write_all(input, decoder.as_mut(), out.writing(), format, size)
+        .and_then(|r| out.commit().map(|()| r));
+    report.map_err(|e| out.explain(e))
+}
+
+fn write_all(
+    input: &Path,
+    decoder: &mut dyn format::EventDecoder,
+    output: &Path,
+    format: Format,
+    size: (u16, u16),
+) -> Result<TranscodeReport> {
     let mut encoder = format::create(output, format, size.0, size.1)?;
     let mut buf = Vec::with_capacity(CHUNK + 16);
     let mut events = 0u64;

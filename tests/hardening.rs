@@ -238,11 +238,12 @@ fn input_faults_name_the_input() {
         Duration::from_secs(20),
     );
     assert_eq!(code, Some(1), "{err}");
-    assert!(err.contains("dec.csv: event 1"), "{err}");
-    assert!(!err.contains("out.aedat4"), "{err}");
+    assert!(err.contains("error: dec.csv: event 1"), "{err}");
+    assert!(!err.contains("aedat4: "), "{err}");
 }
 
-/// A `convert` stopped by SIGINT says so and exits 130; what it wrote is a complete file.
+/// A `convert` stopped by SIGINT says so and exits 130; what it wrote is a complete file, kept
+/// under the partial name.
 #[test]
 fn an_interrupted_convert_exits_130_with_a_readable_file() {
     let dir = common::temp_dir("hardening-interrupt");
@@ -253,7 +254,7 @@ fn an_interrupted_convert_exits_130_with_a_readable_file() {
         y4m.extend((0..w * h).map(|p| ((p % w + 3 * i) % 200 + 20) as u8));
     }
     std::fs::write(dir.join("long.y4m"), y4m).unwrap();
-    let out = dir.join("out.csv");
+    let out = dir.join("out.partial.csv");
     let mut child = Command::new(env!("CARGO_BIN_EXE_v2ce"))
         .args(["convert", "long.y4m", "-o", "out.csv"])
         .current_dir(&dir)
@@ -281,11 +282,15 @@ fn an_interrupted_convert_exits_130_with_a_readable_file() {
         .unwrap();
     assert_eq!(status.code(), Some(130), "{err}");
     assert!(
-        err.contains("interrupted: ") && err.contains("out.csv"),
+        err.contains("interrupted: ") && err.contains("out.partial.csv"),
         "{err}"
     );
+    assert!(
+        !dir.join("out.csv").exists(),
+        "a partial output under the final name"
+    );
     let info = Command::new(env!("CARGO_BIN_EXE_v2ce"))
-        .args(["info", "out.csv"])
+        .args(["info", "out.partial.csv"])
         .current_dir(&dir)
         .output()
         .unwrap();
@@ -418,4 +423,64 @@ fn an_unreadable_video_is_one_error_line() {
     assert_eq!(code, Some(1), "{err}");
     assert_eq!(err.trim_end().lines().count(), 1, "{err}");
     assert!(err.contains("not a readable video (ffprobe: "), "{err}");
+}
+
+/// A truncated input fails `convert` and `transcode` with exit status 1 and an error that says
+/// the output is partial and where it is; nothing is left under the name asked for, and the
+/// partial file reads.
+#[test]
+fn a_truncated_input_leaves_a_partial_output_that_says_so() {
+    let dir = common::temp_dir("hardening-partial");
+    let (w, h) = (64usize, 48usize);
+    let mut y4m = format!("YUV4MPEG2 W{w} H{h} F30:1 Cmono\n").into_bytes();
+    for i in 0..40 {
+        y4m.extend_from_slice(b"FRAME\n");
+        y4m.extend((0..w * h).map(|p| ((p % w + 3 * i) % 200 + 20) as u8));
+    }
+    y4m.truncate(y4m.len() - 100);
+    std::fs::write(dir.join("cut.y4m"), &y4m).unwrap();
+    let (code, err) = run(
+        &["convert", "cut.y4m", "-o", "out.aedat4"],
+        &dir,
+        Duration::from_secs(60),
+    );
+    assert_eq!(code, Some(1), "{err}");
+    assert!(err.contains("cut.y4m"), "{err}");
+    assert!(err.contains("out.partial.aedat4"), "{err}");
+    assert!(!dir.join("out.aedat4").exists());
+    let (code, info) = run(
+        &["info", "out.partial.aedat4"],
+        &dir,
+        Duration::from_secs(20),
+    );
+    assert_eq!(code, Some(0), "{info}");
+
+    // The same for transcode: a RAW file cut inside a word.
+    let (code, err) = run(
+        &[
+            "convert",
+            "cut.y4m",
+            "--max-frames",
+            "30",
+            "-o",
+            "whole.raw",
+        ],
+        &dir,
+        Duration::from_secs(60),
+    );
+    assert_eq!(code, Some(0), "{err}");
+    let raw = std::fs::read(dir.join("whole.raw")).unwrap();
+    std::fs::write(dir.join("cut.raw"), &raw[..raw.len() - 3]).unwrap();
+    let (code, err) = run(
+        &["transcode", "cut.raw", "out.csv"],
+        &dir,
+        Duration::from_secs(20),
+    );
+    assert_eq!(code, Some(1), "{err}");
+    assert!(
+        err.contains("cut.raw") && err.contains("out.partial.csv"),
+        "{err}"
+    );
+    assert!(!dir.join("out.csv").exists());
+    assert!(!dir.join("whole.partial.raw").exists());
 }

@@ -6,7 +6,7 @@
 use std::io::{BufRead, BufReader};
 use std::path::Path;
 
-use super::Recording;
+use super::EventDecoder;
 use crate::error::{Error, Result};
 use crate::event::Event;
 
@@ -40,59 +40,115 @@ pub fn parse_seconds_us(s: &str) -> Option<i64> {
     Some(if neg { -us } else { us })
 }
 
-fn for_each_line(path: &Path, mut f: impl FnMut(usize, &[&str]) -> Result<()>) -> Result<()> {
-    let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
-    for (i, line) in BufReader::new(file).lines().enumerate() {
-        let line = line.map_err(|e| Error::io(path, e))?;
-        let fields: Vec<&str> = line.split_whitespace().collect();
-        if fields.is_empty() || fields[0].starts_with('#') {
-            continue;
-        }
-        f(i + 1, &fields)?;
-    }
-    Ok(())
+/// The longest line accepted, in bytes.
+const MAX_LINE: u64 = 4096;
+
+/// Reads lines of at most [`MAX_LINE`] bytes, skipping blank and `#` lines; hands each line's
+/// number and whitespace-separated fields to the caller.
+struct Lines<R> {
+    reader: R,
+    line: u64,
+    buf: Vec<u8>,
 }
 
-/// Reads an IJRR `events.txt`.
-pub fn read_events(path: &Path) -> Result<Recording> {
-    let mut events = Vec::new();
-    for_each_line(path, |line, f| {
-        let bad = || {
-            Error::format(
-                path,
-                format!(
-                    "line {line}: expected 't_seconds x y polarity', got '{}'",
-                    f.join(" ")
-                ),
-            )
-        };
-        if f.len() != 4 {
-            return Err(bad());
+impl<R: BufRead> Lines<R> {
+    fn new(reader: R) -> Self {
+        Lines {
+            reader,
+            line: 0,
+            buf: Vec::new(),
         }
-        let t = parse_seconds_us(f[0]).ok_or_else(bad)?;
-        let x: u16 = f[1].parse().map_err(|_| bad())?;
-        let y: u16 = f[2].parse().map_err(|_| bad())?;
-        let on = match f[3] {
-            "1" => true,
-            "0" | "-1" => false,
-            _ => return Err(bad()),
-        };
-        events.push(Event::new(t, x, y, on));
-        Ok(())
-    })?;
-    Ok(Recording::new(events, None))
+    }
+
+    /// The next line with fields, or `None` at the end of the input.
+    fn next_fields(&mut self) -> std::result::Result<Option<(u64, Vec<&str>)>, String> {
+        loop {
+            self.buf.clear();
+            let n = std::io::Read::take(&mut self.reader, MAX_LINE)
+                .read_until(b'\n', &mut self.buf)
+                .map_err(|e| format!("line {}: {e}", self.line + 1))?;
+            if n == 0 {
+                return Ok(None);
+            }
+            self.line += 1;
+            if n as u64 == MAX_LINE && self.buf.last() != Some(&b'\n') {
+                return Err(format!("line {}: longer than {MAX_LINE} bytes", self.line));
+            }
+            let text = std::str::from_utf8(&self.buf)
+                .map_err(|_| format!("line {}: not UTF-8", self.line))?;
+            let first = text.split_whitespace().next();
+            if first.is_some_and(|f| !f.starts_with('#')) {
+                break;
+            }
+        }
+        // Borrow again outside the loop: the fields live as long as the buffer.
+        let text = std::str::from_utf8(&self.buf).unwrap_or_default();
+        Ok(Some((self.line, text.split_whitespace().collect())))
+    }
+}
+
+/// Streams the events of an IJRR `events.txt` (one line at a time: memory stays flat however
+/// long the file). The text has no sensor size; times come in the file's order.
+pub struct Decoder<R> {
+    lines: Lines<R>,
+}
+
+impl<R: BufRead> Decoder<R> {
+    /// A decoder over `events.txt` text.
+    pub fn new(reader: R) -> Self {
+        Decoder {
+            lines: Lines::new(reader),
+        }
+    }
+}
+
+impl<R: BufRead> EventDecoder for Decoder<R> {
+    /// IJRR text has no sensor size.
+    fn size(&self) -> Option<(u16, u16)> {
+        None
+    }
+
+    fn read_events(&mut self, out: &mut Vec<Event>, max: usize) -> Result<usize> {
+        let start = out.len();
+        let bad = |m: String| Error::invalid("IJRR events", m);
+        while out.len() - start < max {
+            let Some((line, f)) = self.lines.next_fields().map_err(bad)? else {
+                break;
+            };
+            let wrong = || {
+                bad(format!(
+                    "line {line}: expected 't_seconds x y polarity', got '{}'",
+                    f.join(" ").escape_debug()
+                ))
+            };
+            if f.len() != 4 {
+                return Err(wrong());
+            }
+            let t = parse_seconds_us(f[0]).ok_or_else(wrong)?;
+            let x: u16 = f[1].parse().map_err(|_| wrong())?;
+            let y: u16 = f[2].parse().map_err(|_| wrong())?;
+            let on = match f[3] {
+                "1" => true,
+                "0" | "-1" => false,
+                _ => return Err(wrong()),
+            };
+            out.push(Event::new(t, x, y, on));
+        }
+        Ok(out.len() - start)
+    }
 }
 
 /// Reads the frame times of an IJRR `images.txt`.
 pub fn read_frame_times(path: &Path) -> Result<Vec<i64>> {
+    let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let mut lines = Lines::new(BufReader::new(file));
     let mut times = Vec::new();
-    for_each_line(path, |line, f| {
+    while let Some((line, f)) = lines.next_fields().map_err(|m| Error::format(path, m))? {
         let t = f.first().and_then(|s| parse_seconds_us(s)).ok_or_else(|| {
             Error::format(path, format!("line {line}: expected 't_seconds path'"))
         })?;
         times.push(t);
-        Ok(())
-    })?;
+    }
     Ok(times)
 }
 
@@ -115,5 +171,34 @@ mod tests {
         for bad in ["", ".", "a", "1.2.3", "1e999", "--1"] {
             assert_eq!(parse_seconds_us(bad), None, "{bad}");
         }
+    }
+
+    #[test]
+    fn events_stream_in_chunks() {
+        let text = "# t x y p\n0.000001 1 2 1\n\n0.000002 3 4 0\n0.5 5 6 -1\n";
+        let mut d = Decoder::new(text.as_bytes());
+        let mut out = Vec::new();
+        assert_eq!(d.read_events(&mut out, 2).unwrap(), 2);
+        assert_eq!(d.read_events(&mut out, 2).unwrap(), 1);
+        assert_eq!(d.read_events(&mut out, 2).unwrap(), 0);
+        assert_eq!(
+            out,
+            [
+                Event::new(1, 1, 2, true),
+                Event::new(2, 3, 4, false),
+                Event::new(500_000, 5, 6, false)
+            ]
+        );
+        let err = Decoder::new("0.1 1 2 1\n0.2 1 2\n".as_bytes())
+            .read_events(&mut Vec::new(), 10)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("line 2"), "{err}");
+        let long = vec![b'1'; 10_000];
+        let err = Decoder::new(&long[..])
+            .read_events(&mut Vec::new(), 10)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("longer than"), "{err}");
     }
 }

@@ -184,26 +184,8 @@ impl EventDecoder for FileDecoder {
     }
 }
 
-/// Serves events already in memory (for formats read whole, such as IJRR text).
-struct MemoryDecoder {
-    size: Option<(u16, u16)>,
-    events: std::vec::IntoIter<Event>,
-}
-
-impl EventDecoder for MemoryDecoder {
-    fn size(&self) -> Option<(u16, u16)> {
-        self.size
-    }
-
-    fn read_events(&mut self, out: &mut Vec<Event>, max: usize) -> Result<usize> {
-        let before = out.len();
-        out.extend(self.events.by_ref().take(max));
-        Ok(out.len() - before)
-    }
-}
-
 /// Opens an event file for streaming: `.aedat4`, `.raw` (EVT 2.0 or 3.0, from its header),
-/// `.csv`, `.npz`, `.h5`/`.hdf5` (DSEC layout), or an IJRR `events.txt` (read whole).
+/// `.csv`, `.npz`, `.h5`/`.hdf5` (DSEC layout), or an IJRR `events.txt`.
 pub fn open(path: &Path) -> Result<Box<dyn EventDecoder + Send>> {
     if path.is_dir() {
         return Err(Error::format(path, "a folder, not an event file"));
@@ -229,13 +211,7 @@ pub fn open(path: &Path) -> Result<Box<dyn EventDecoder + Send>> {
             drop(reader);
             Box::new(hdf5::Decoder::open(path).map_err(wrap)?)
         }
-        "txt" => {
-            let rec = ijrr::read_events(path)?;
-            Box::new(MemoryDecoder {
-                size: None,
-                events: rec.events.into_events().into_iter(),
-            })
-        }
+        "txt" => Box::new(ijrr::Decoder::new(reader)),
         other => {
             return Err(Error::format(
                 path,
@@ -304,6 +280,59 @@ pub fn create(
         path: path.to_path_buf(),
         inner,
     }))
+}
+
+/// An output written under a temporary name (`out.csv` is written as `out.partial.csv`, so
+/// readers still know its format) and given its own name only when complete, so a file under
+/// the name asked for is always whole: a failed or interrupted command leaves the partial file
+/// (readable up to where it stopped) and says so.
+#[derive(Debug, Clone)]
+pub struct PartialOutput {
+    path: PathBuf,
+    partial: PathBuf,
+}
+
+impl PartialOutput {
+    /// The output `path`, written as `STEM.partial.EXT` beside it until
+    /// [`PartialOutput::commit`].
+    pub fn new(path: &Path) -> Self {
+        let mut name = path.file_stem().unwrap_or_default().to_owned();
+        name.push(".partial");
+        if let Some(ext) = path.extension() {
+            name.push(".");
+            name.push(ext);
+        }
+        PartialOutput {
+            path: path.to_path_buf(),
+            partial: path.with_file_name(name),
+        }
+    }
+
+    /// Where to write until the output is complete.
+    pub fn writing(&self) -> &Path {
+        &self.partial
+    }
+
+    /// Gives the complete output its name.
+    pub fn commit(&self) -> Result<()> {
+        std::fs::rename(&self.partial, &self.path).map_err(|e| Error::io(&self.path, e))
+    }
+
+    /// `e`, saying where what was written before it is (when anything was).
+    pub fn explain(&self, e: Error) -> Error {
+        if !self.partial.exists() {
+            return e;
+        }
+        let kept = format!(
+            "{} was not written; what was written before this is in {}",
+            self.path.display(),
+            self.partial.display()
+        );
+        match e {
+            Error::Interrupted(why) => Error::Interrupted(format!("{why}; {kept}")),
+            e => Error::Run(format!("{e}; {kept}")),
+        }
+    }
 }
 
 /// Events read from a file, with the sensor size.
