@@ -484,3 +484,61 @@ fn a_truncated_input_leaves_a_partial_output_that_says_so() {
     assert!(!dir.join("out.csv").exists());
     assert!(!dir.join("whole.partial.raw").exists());
 }
+
+/// Times at both ends of the i64 range go through both RAW encodings and come back exactly
+/// (the header's time offset was refused beyond 2^62 by the same program that wrote it).
+#[test]
+fn raw_files_carry_times_at_both_ends_of_the_range() {
+    let dir = common::temp_dir("hardening-raw-ends");
+    let cases = [
+        ("high.csv", "t_us,x,y,on\n9223372036854775000,1,1,1\n9223372036854775807,2,2,0\n"),
+        ("low.csv", "t_us,x,y,on\n-9223372036854775808,1,1,1\n-9223372036854775000,2,2,0\n"),
+    ];
+    for (name, text) in cases {
+        std::fs::write(dir.join(name), text).unwrap();
+        for evt in ["2", "3"] {
+            let raw = format!("{name}.{evt}.raw");
+            let back = format!("{name}.{evt}.csv");
+            for args in [
+                vec!["transcode", "--evt", evt, "--size", "4x4", name, &raw],
+                vec!["transcode", &raw, &back],
+            ] {
+                let (code, err) = run(&args, &dir, Duration::from_secs(20));
+                assert_eq!(code, Some(0), "{args:?}: {err}");
+            }
+            assert_eq!(
+                std::fs::read_to_string(dir.join(&back)).unwrap(),
+                text,
+                "{raw}"
+            );
+        }
+    }
+}
+
+/// A few kilobytes of Zstd may not claim hundreds of megabytes: past 16 MiB, a packet may
+/// decompress to at most 1024 times its size (it reached 773 MB from a 9 KB file). A flat
+/// 1280 x 720 RGBA frame, the most compressible real packet, still decompresses.
+#[test]
+fn decompression_is_bounded_by_ratio() {
+    use v2ce::format::aedat4::Compression;
+    for c in [Compression::Zstd, Compression::Lz4] {
+        let (mut packed, mut back) = (Vec::new(), Vec::new());
+        let frame = vec![0u8; 1280 * 720 * 4];
+        c.compress(&frame, &mut packed).unwrap();
+        c.decompress(&packed, &mut back).unwrap();
+        assert_eq!(back, frame);
+        let bomb = vec![7u8; 64 << 20];
+        c.compress(&bomb, &mut packed).unwrap();
+        let ratio = bomb.len() / packed.len();
+        let result = c.decompress(&packed, &mut back);
+        if ratio > 1024 {
+            let err = result.unwrap_err().to_string();
+            assert!(err.contains("1024 times"), "{err}");
+            // It stopped one byte past the bound.
+            assert!(back.len() <= (16 << 20) + 1, "{c:?}: {} bytes held", back.len());
+        } else {
+            // LZ4 cannot compress more than about 255 times: 64 MiB needs 256 KiB of input.
+            assert!(result.is_ok(), "{c:?}: ratio {ratio}");
+        }
+    }
+}

@@ -686,20 +686,35 @@ fn sink_stage(
     failed_sinks: &AtomicUsize,
     sink_count: usize,
 ) {
-    let mut failed = false;
-    let fail = |sink: &dyn Sink, what: &str, e: Error| {
+    // Events handed to this sink. After a failure every one not sent is counted as dropped
+    // (the failed batch and all drained after it), so the report does not say "0 dropped".
+    let mut handed = 0u64;
+    let mut failed: Option<String> = None;
+    let after_failure = |sink: &dyn Sink, handed: u64| {
+        let mut stats = sink.stats();
+        stats.events_in = handed;
+        stats.events_dropped = handed.saturating_sub(stats.events_sent);
+        stats
+    };
+    let fail = |sink: &dyn Sink, what: &str, e: Error, handed: u64| {
         let message = format!("{}: {what}: {e}", sink.describe());
         tracing::error!("{message}; the other outputs go on");
         ctx.counters
-            .update_sink(index, sink.stats(), Some(message.clone()));
+            .update_sink(index, after_failure(sink, handed), Some(message.clone()));
         if failed_sinks.fetch_add(1, Ordering::Relaxed) + 1 == sink_count {
             ctx.fail(format!("every output failed (last: {message})"));
         }
+        message
     };
     while let Some(batch) = rx.recv() {
         let received = Instant::now();
-        if failed {
+        handed += batch.events.len() as u64;
+        if let Some(message) = &failed {
             // Drained, so the stages upstream never wait on a dead output.
+            if !batch.events.is_empty() {
+                let stats = after_failure(sink.as_ref(), handed);
+                ctx.counters.update_sink(index, stats, Some(message.clone()));
+            }
             continue;
         }
         if !batch.events.is_empty() {
@@ -708,8 +723,7 @@ fn sink_stage(
                 captured: batch.at,
             };
             if let Err(e) = sink.send_closed(&batch.events, closed_by) {
-                failed = true;
-                fail(sink.as_ref(), "send failed", e);
+                failed = Some(fail(sink.as_ref(), "send failed", e, handed));
                 continue;
             }
         }
@@ -717,10 +731,12 @@ fn sink_stage(
         ctx.counters.record_latency(batch.at.elapsed());
         ctx.counters.update_sink(index, sink.stats(), None);
     }
-    if !failed {
+    if failed.is_none() {
         match sink.finish() {
             Ok(()) => ctx.counters.update_sink(index, sink.stats(), None),
-            Err(e) => fail(sink.as_ref(), "closing failed", e),
+            Err(e) => {
+                fail(sink.as_ref(), "closing failed", e, handed);
+            }
         }
     }
 }
@@ -750,6 +766,7 @@ mod tests {
                 return Err(Error::Run("disk full".into()));
             }
             self.stats.events_in += events.len() as u64;
+            self.stats.events_sent += events.len() as u64;
             self.got
                 .lock()
                 .unwrap_or_else(|e| e.into_inner())
@@ -827,6 +844,11 @@ mod tests {
             .unwrap()
             .contains("disk full"));
         assert!(report.stats.sinks[1].failed.is_none());
+        // What the failed sink did not write is counted as dropped, from the failed send on.
+        let bad = report.stats.sinks[0].stats;
+        assert_eq!(bad.events_in, events);
+        assert!(bad.events_sent > 0 && bad.events_dropped > 0, "{bad:?}");
+        assert_eq!(bad.events_sent + bad.events_dropped, events);
     }
 
     #[test]

@@ -11,9 +11,10 @@
 //! A frame's time is the middle of its exposure, `(exposure_begin + exposure_end) / 2`: the
 //! instant the image stands for (the IJRR export of the same recording uses it too).
 //!
-//! Limits: a packet may hold at most [`MAX_PACKET_BYTES`] before or after decompression and the
-//! header at most [`MAX_HEADER_BYTES`]; larger sizes are reported as corruption before anything
-//! is allocated.
+//! Limits: a packet may hold at most [`MAX_PACKET_BYTES`] before or after decompression, and
+//! decompress to at most [`MAX_RATIO`] times its size beyond [`RATIO_FREE_BYTES`]; the header at
+//! most [`MAX_HEADER_BYTES`]. Larger sizes are reported as corruption before anything is
+//! allocated (a few kilobytes of Zstd cannot claim hundreds of megabytes).
 
 pub mod flatbuf;
 
@@ -32,6 +33,13 @@ use crate::event::Event;
 pub const MAGIC: &[u8; 14] = b"#!AER-DAT4.0\r\n";
 /// Largest packet accepted, compressed or not.
 pub const MAX_PACKET_BYTES: usize = 256 << 20;
+/// Largest ratio of a packet's decompressed to compressed size accepted once it decompresses to
+/// more than [`RATIO_FREE_BYTES`]. LZ4 cannot exceed about 255; real event packets compress 3 to
+/// 10 times; only frames of one flat colour come near it, and those up to 2048 x 2048 RGBA fit
+/// under [`RATIO_FREE_BYTES`] whatever their ratio.
+pub const MAX_RATIO: usize = 1024;
+/// Decompressed size allowed whatever the ratio.
+pub const RATIO_FREE_BYTES: usize = 16 << 20;
 /// Largest `IOHeader` accepted.
 pub const MAX_HEADER_BYTES: usize = 16 << 20;
 /// Events per packet written by [`Writer`].
@@ -130,10 +138,16 @@ impl Compression {
         Ok(())
     }
 
-    /// Decompresses one packet's bytes, refusing more than [`MAX_PACKET_BYTES`].
+    /// Decompresses one packet's bytes, refusing more than [`MAX_PACKET_BYTES`] or more than
+    /// [`MAX_RATIO`] times `data` beyond [`RATIO_FREE_BYTES`].
     pub fn decompress(self, data: &[u8], out: &mut Vec<u8>) -> Result<()> {
         out.clear();
-        let limit = MAX_PACKET_BYTES as u64 + 1;
+        let allowed = data
+            .len()
+            .saturating_mul(MAX_RATIO)
+            .max(RATIO_FREE_BYTES)
+            .min(MAX_PACKET_BYTES);
+        let limit = allowed as u64 + 1;
         let result = match self {
             Compression::None => {
                 out.extend_from_slice(data);
@@ -147,8 +161,10 @@ impl Compression {
             }
         };
         match result {
-            Ok(n) if n > MAX_PACKET_BYTES => Err(bad(format!(
-                "a packet decompresses to more than {MAX_PACKET_BYTES} bytes"
+            Ok(n) if n > allowed => Err(bad(format!(
+                "a packet of {} bytes decompresses to more than {allowed} bytes (at most \
+                 {MAX_PACKET_BYTES}, and {MAX_RATIO} times its size beyond {RATIO_FREE_BYTES})",
+                data.len()
             ))),
             Ok(_) => Ok(()),
             Err(e) => Err(bad(format!(
