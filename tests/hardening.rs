@@ -491,8 +491,14 @@ fn a_truncated_input_leaves_a_partial_output_that_says_so() {
 fn raw_files_carry_times_at_both_ends_of_the_range() {
     let dir = common::temp_dir("hardening-raw-ends");
     let cases = [
-        ("high.csv", "t_us,x,y,on\n9223372036854775000,1,1,1\n9223372036854775807,2,2,0\n"),
-        ("low.csv", "t_us,x,y,on\n-9223372036854775808,1,1,1\n-9223372036854775000,2,2,0\n"),
+        (
+            "high.csv",
+            "t_us,x,y,on\n9223372036854775000,1,1,1\n9223372036854775807,2,2,0\n",
+        ),
+        (
+            "low.csv",
+            "t_us,x,y,on\n-9223372036854775808,1,1,1\n-9223372036854775000,2,2,0\n",
+        ),
     ];
     for (name, text) in cases {
         std::fs::write(dir.join(name), text).unwrap();
@@ -535,7 +541,11 @@ fn decompression_is_bounded_by_ratio() {
             let err = result.unwrap_err().to_string();
             assert!(err.contains("1024 times"), "{err}");
             // It stopped one byte past the bound.
-            assert!(back.len() <= (16 << 20) + 1, "{c:?}: {} bytes held", back.len());
+            assert!(
+                back.len() <= (16 << 20) + 1,
+                "{c:?}: {} bytes held",
+                back.len()
+            );
         } else {
             // LZ4 cannot compress more than about 255 times: 64 MiB needs 256 KiB of input.
             assert!(result.is_ok(), "{c:?}: ratio {ratio}");

@@ -713,7 +713,8 @@ fn sink_stage(
             // Drained, so the stages upstream never wait on a dead output.
             if !batch.events.is_empty() {
                 let stats = after_failure(sink.as_ref(), handed);
-                ctx.counters.update_sink(index, stats, Some(message.clone()));
+                ctx.counters
+                    .update_sink(index, stats, Some(message.clone()));
             }
             continue;
         }

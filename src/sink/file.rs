@@ -64,7 +64,9 @@ pub struct FileSink {
     /// Flush at most this long after the last flush (the daemon's outputs; `convert` writes
     /// whole packets only, so its files do not depend on timing).
     flush_every: Option<Duration>,
-    last_flush: Instant,
+    /// `None` until the first flush, which comes with the first events (so a file killed
+    /// after its first batch already has its header and that batch on disk).
+    last_flush: Option<Instant>,
 }
 
 impl FileSink {
@@ -76,12 +78,12 @@ impl FileSink {
             encoder: format::create(path, format, width, height)?,
             stats: SinkStats::default(),
             flush_every: None,
-            last_flush: Instant::now(),
+            last_flush: None,
         })
     }
 
-    /// Flushes (see [`EventEncoder::flush`]) whenever events arrive `period` or more after the
-    /// last flush.
+    /// Flushes (see [`EventEncoder::flush`]) with the first events, then whenever events arrive
+    /// `period` or more after the last flush.
     pub fn with_flush_period(mut self, period: Duration) -> Self {
         self.flush_every = Some(period);
         self
@@ -98,12 +100,11 @@ impl Sink for FileSink {
         self.encoder.write(events)?;
         self.stats.events_sent += events.len() as u64;
         self.stats.messages_sent += 1;
-        if self
-            .flush_every
-            .is_some_and(|p| self.last_flush.elapsed() >= p)
-        {
-            self.encoder.flush()?;
-            self.last_flush = Instant::now();
+        if let Some(period) = self.flush_every {
+            if self.last_flush.is_none_or(|at| at.elapsed() >= period) {
+                self.encoder.flush()?;
+                self.last_flush = Some(Instant::now());
+            }
         }
         Ok(())
     }

@@ -4,6 +4,7 @@ Run by the Rust integration tests (tests/independent_readers.rs) with the projec
 environment; each mode compares what a third-party reader gets with an expected CSV
 (`t_us,x,y,on`) and exits 0 on an exact match, 1 on a mismatch, 2 on a timeout.
 
+    crosscheck.py files READER PATH EXPECTED.csv [PATH EXPECTED.csv ...]   each pair, offset 0
     crosscheck.py file READER PATH EXPECTED.csv [T_OFFSET]   READER: faery | aedat | dv |
                                                                aestream | expelliarmus |
                                                                numpy | h5py
@@ -295,6 +296,19 @@ def main(argv):
         got = READERS[reader](path)
         got[:, 0] += offset
         return compare(got, want, f"{reader} reading {os.path.basename(path)}")
+    if mode == "files":
+        reader, pairs = argv[2], argv[3:]
+        watchdog(600, f"{reader} reading {len(pairs) // 2} files")
+        failed = 0
+        for path, want in zip(pairs[0::2], pairs[1::2]):
+            try:
+                got = READERS[reader](path)
+            except Exception as e:  # a reader that raises is a failure of this file
+                print(f"FAILED {reader} reading {path}: {type(e).__name__}: {e}")
+                failed += 1
+                continue
+            failed += compare(got, expected(want), f"{reader} reading {path}")
+        return 1 if failed else 0
     if mode == "udp":
         return udp(argv[2], int(argv[3]), expected(argv[4]), int(argv[5]), int(argv[6]))
     if mode == "aestream":
