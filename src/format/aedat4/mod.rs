@@ -145,8 +145,7 @@ impl Compression {
         let allowed = data
             .len()
             .saturating_mul(MAX_RATIO)
-            .max(RATIO_FREE_BYTES)
-            .min(MAX_PACKET_BYTES);
+            .clamp(RATIO_FREE_BYTES, MAX_PACKET_BYTES);
         let limit = allowed as u64 + 1;
         let result = match self {
             Compression::None => {
