@@ -161,12 +161,7 @@ impl RunConfig {
     /// Checks values that TOML types cannot.
     pub fn validate(&self) -> Result<()> {
         let bad = |what: &'static str, message: String| Err(Error::invalid(what, message));
-        if !(self.replay_speed.is_finite() && self.replay_speed > 0.0) {
-            return bad(
-                "run.replay_speed",
-                format!("{} (must be > 0)", self.replay_speed),
-            );
-        }
+        crate::limits::replay_speed("run.replay_speed", self.replay_speed)?;
         if self.fps != 0.0 {
             crate::limits::frame_rate("run.fps", self.fps)?;
         }

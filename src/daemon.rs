@@ -391,6 +391,7 @@ pub fn bench(
     stop: &AtomicBool,
 ) -> Result<BenchResult> {
     crate::limits::seconds("bench --seconds", seconds, false)?;
+    crate::limits::replay_speed("bench --replay-speed", speed)?;
     // A receiver thread: `v2ce listen`'s, on timestamped SPIF words (the default datagram
     // size), measuring when events arrive against their own times.
     let done = Arc::new(AtomicBool::new(false));

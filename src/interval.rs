@@ -90,12 +90,7 @@ pub fn intervals_from_frames(frame_times: &[i64]) -> Result<Vec<Interval>> {
 /// `trunc(i * 1e6 / fps)` offsets), computed from `i` each time, so a rate like 29.97 does not
 /// accumulate drift. The last interval is the one that contains `last`.
 pub fn fixed_intervals(first: i64, last: i64, fps: f64) -> Result<Vec<Interval>> {
-    if !(fps.is_finite() && fps > 0.0 && fps <= 1e6) {
-        return Err(Error::invalid(
-            "fps",
-            format!("{fps} is not a rate in (0, 1e6] frames per second"),
-        ));
-    }
+    crate::limits::frame_rate("fps", fps)?;
     if last < first {
         return Ok(Vec::new());
     }

@@ -61,6 +61,81 @@ pub fn frame_rate(what: &'static str, fps: f64) -> Result<()> {
     Ok(())
 }
 
+/// Memory the process may still take, bytes: the least of the system's available memory
+/// (`MemAvailable`), what the address-space limit (`RLIMIT_AS`, as under `ulimit -v`) leaves,
+/// and what the cgroup's `memory.max` leaves (systemd's `MemoryMax`, a container's limit).
+/// `None` when none of them can be read.
+pub fn memory_available() -> Option<u64> {
+    let read = |p: &str| std::fs::read_to_string(p).ok();
+    let mut least: Option<u64> = None;
+    let mut take = |v: u64| least = Some(least.map_or(v, |l| l.min(v)));
+    if let Some(info) = read("/proc/meminfo") {
+        let kib = info
+            .lines()
+            .find_map(|l| l.strip_prefix("MemAvailable:"))
+            .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok());
+        if let Some(kib) = kib {
+            take(kib * 1024);
+        }
+    }
+    let mut limit = libc::rlimit {
+        rlim_cur: 0,
+        rlim_max: 0,
+    };
+    // SAFETY: getrlimit writes the struct it is given.
+    let ok = unsafe { libc::getrlimit(libc::RLIMIT_AS, &mut limit) } == 0;
+    if ok && limit.rlim_cur != libc::RLIM_INFINITY {
+        let pages = read("/proc/self/statm")
+            .and_then(|s| s.split_whitespace().next()?.parse::<u64>().ok())
+            .unwrap_or(0);
+        take((limit.rlim_cur as u64).saturating_sub(pages * 4096));
+    }
+    let max = read("/sys/fs/cgroup/memory.max").and_then(|s| s.trim().parse::<u64>().ok());
+    if let Some(max) = max {
+        let current = read("/sys/fs/cgroup/memory.current")
+            .and_then(|s| s.trim().parse::<u64>().ok())
+            .unwrap_or(0);
+        take(max.saturating_sub(current));
+    }
+    least
+}
+
+/// Checks, before allocating, that `bytes` for `what` fit in [`memory_available`].
+pub fn memory(what: &'static str, bytes: u64, purpose: &str) -> Result<()> {
+    match memory_available() {
+        Some(free) if bytes > free => Err(Error::invalid(
+            what,
+            format!(
+                "{purpose} needs about {:.1} GB, and {:.1} GB is available (the least of free \
+                 memory, the address-space limit and the cgroup's memory limit)",
+                bytes as f64 / 1e9,
+                free as f64 / 1e9
+            ),
+        )),
+        _ => Ok(()),
+    }
+}
+
+/// The slowest and fastest replay of a recording, times real time.
+pub const REPLAY_SPEEDS: (f64, f64) = (1e-3, 1e6);
+
+/// Checks a replay speed of `what`: from [`REPLAY_SPEEDS`]'s 1/1000 (a second of recording
+/// over 17 minutes) to 1,000,000 times real time.
+pub fn replay_speed(what: &'static str, speed: f64) -> Result<()> {
+    let (low, high) = REPLAY_SPEEDS;
+    if !(speed.is_finite() && (low..=high).contains(&speed)) {
+        return Err(Error::invalid(
+            what,
+            format!(
+                "{}: must be {low} to {} times real time",
+                number(speed),
+                number(high)
+            ),
+        ));
+    }
+    Ok(())
+}
+
 /// `v` as a person reads it: plain, or in scientific notation when huge or tiny.
 fn number(v: f64) -> String {
     if v != 0.0 && v.is_finite() && !(1e-4..1e9).contains(&v.abs()) {

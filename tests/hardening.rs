@@ -552,3 +552,48 @@ fn decompression_is_bounded_by_ratio() {
         }
     }
 }
+
+/// A replay speed too slow to mean anything is refused, and the daemon's deadline ends even a
+/// wait for a frame due far in the future (`--replay-speed 1e-300` ran past `--duration`).
+#[test]
+fn replay_speeds_are_bounded_and_the_deadline_cuts_waits_short() {
+    let dir = common::temp_dir("hardening-replay");
+    for v in ["1e-300", "0", "nan", "1e300"] {
+        refused(
+            &[
+                "run",
+                "--source",
+                "fixture",
+                "--out",
+                "r.csv",
+                &format!("--replay-speed={v}"),
+            ],
+            &dir,
+            "run.replay_speed",
+        );
+        refused(
+            &["bench", "--seconds", "1", &format!("--replay-speed={v}")],
+            &dir,
+            "--replay-speed",
+        );
+    }
+    // The slowest speed allowed: the second frame is due 33 s in; the deadline stops it at 1 s.
+    let started = Instant::now();
+    let (code, err) = run(
+        &[
+            "run",
+            "--source",
+            "fixture",
+            "--out",
+            "r.csv",
+            "--replay-speed",
+            "0.001",
+            "--duration",
+            "1",
+        ],
+        &dir,
+        Duration::from_secs(20),
+    );
+    assert_eq!(code, Some(0), "{err}");
+    assert!(started.elapsed() < Duration::from_secs(15), "{err}");
+}

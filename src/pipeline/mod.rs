@@ -400,7 +400,16 @@ fn capture_stage(
     let mut current = first;
     let mut pacer = pace.map(Pacer::new);
     let deadline = options.duration.map(|d| Instant::now() + d);
-    let stopping = || ctx.stopping();
+    let past_deadline = || deadline.is_some_and(|d| Instant::now() >= d);
+    // Waits (a paced replay, a reopening camera) end at a stop and at the deadline alike.
+    let stopping = || ctx.stopping() || past_deadline();
+    let cut_short = || {
+        if ctx.stopping() {
+            End::Stopped
+        } else {
+            End::Duration
+        }
+    };
     let mut frames = 0u64;
     let mut generation = 0u64;
     let (mut offset, mut period, mut realign) = (0i64, 0i64, false);
@@ -415,7 +424,7 @@ fn capture_stage(
         if options.max_frames.is_some_and(|m| frames >= m) {
             return End::MaxFrames;
         }
-        if deadline.is_some_and(|d| Instant::now() >= d) {
+        if past_deadline() {
             return End::Duration;
         }
         match current.next_frame() {
@@ -428,7 +437,7 @@ fn capture_stage(
                 frame.t += offset;
                 if let Some(p) = pacer.as_mut() {
                     if !p.wait(frame.t, &stopping) {
-                        return End::Stopped;
+                        return cut_short();
                     }
                 }
                 if let Some(l) = last_t {
@@ -490,7 +499,7 @@ fn capture_stage(
                 let mut wait = backoff.0;
                 current = loop {
                     if !sleep_unless(wait, &stopping) {
-                        return End::Stopped;
+                        return cut_short();
                     }
                     match open_sized(r, size) {
                         Ok(s) => {

@@ -520,12 +520,21 @@ struct FilterRow {
     lag: f32,
 }
 
+/// Memory the pixel model and the frames and events around it take per pixel, checked before
+/// anything is allocated (measured: 3.15 GB peak converting two 8192 x 8192 frames).
+const BYTES_PER_PIXEL: u64 = 48;
+
 impl PhysicsSim {
     /// A simulator for a `width x height` sensor; `seed` fixes mismatch, hot pixels and noise.
     pub fn new(cfg: PhysicsConfig, width: u16, height: u16, seed: u64) -> Result<Self> {
         cfg.validate()?;
         crate::limits::frame_size("frame size", width.into(), height.into())?;
         let n = width as usize * height as usize;
+        crate::limits::memory(
+            "frame size",
+            n as u64 * BYTES_PER_PIXEL,
+            &format!("{width} x {height} in the pixel model"),
+        )?;
         let log_lut = log_table(&cfg, 1.0);
         let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed ^ 0x005E_ED0F_71C5);
         let mut draw = |mean: f64| -> Vec<f32> {
