@@ -88,7 +88,9 @@ pub fn memory_available() -> Option<u64> {
         let pages = read("/proc/self/statm")
             .and_then(|s| s.split_whitespace().next()?.parse::<u64>().ok())
             .unwrap_or(0);
-        take((limit.rlim_cur as u64).saturating_sub(pages * 4096));
+        // SAFETY: sysconf only reads a system constant.
+        let page = u64::try_from(unsafe { libc::sysconf(libc::_SC_PAGESIZE) }).unwrap_or(4096);
+        take(limit.rlim_cur.saturating_sub(pages * page));
     }
     let max = read("/sys/fs/cgroup/memory.max").and_then(|s| s.trim().parse::<u64>().ok());
     if let Some(max) = max {
