@@ -717,7 +717,7 @@ fn hostile_inputs_end_in_valid_output_or_one_error_line() {
         rss / 1024
     );
     let mut heaviest = heaviest.into_inner().unwrap();
-    heaviest.sort_by(|a, b| b.0.cmp(&a.0));
+    heaviest.sort_by_key(|h| std::cmp::Reverse(h.0));
     for (rss, secs, name) in heaviest.iter().take(5) {
         eprintln!("  {} MiB, {secs:.1} s: {name}", rss / 1024);
     }
