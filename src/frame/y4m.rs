@@ -63,8 +63,9 @@ impl Y4mSource {
             inner: reader,
             count: consumed.clone(),
         });
-        let decoder = y4m::Decoder::new(reader)
-            .map_err(|e| Error::format(path, format!("not a readable Y4M file: {e:?}")))?;
+        let decoder = y4m::Decoder::new(reader).map_err(|e| {
+            Error::format(path, format!("not a readable Y4M file: {}", describe(&e)))
+        })?;
         let (w, h) = (decoder.get_width(), decoder.get_height());
         let size = match (u16::try_from(w), u16::try_from(h)) {
             (Ok(w), Ok(h)) if w > 0 && h > 0 => (w, h),
@@ -133,7 +134,7 @@ impl FrameSource for Y4mSource {
             Err(e) => {
                 return Err(Error::format(
                     &self.path,
-                    format!("frame {}: {e:?}", self.index),
+                    format!("frame {}: {}", self.index, describe(&e)),
                 ))
             }
         };
@@ -196,5 +197,15 @@ impl FrameSource for Y4mSource {
             self.rate.0,
             self.rate.1
         )
+    }
+}
+
+/// The Y4M crate's error in words (its own text for an unknown colour space says "bad input").
+fn describe(e: &y4m::Error) -> String {
+    match e {
+        y4m::Error::UnknownColorspace => "unknown or unsupported colour space (C tag)".into(),
+        y4m::Error::ParseError(p) => format!("bad header: {}", p.to_string().to_lowercase()),
+        y4m::Error::OutOfMemory => "a frame larger than the reader allows".into(),
+        other => other.to_string(),
     }
 }
