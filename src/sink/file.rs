@@ -49,10 +49,10 @@ impl FileSinkConfig {
     }
 }
 
-/// How often the daemon's file outputs hand what they hold to the operating system: a daemon
-/// killed (SIGKILL, power loss) loses at most this much of its events, and what it wrote before
-/// is whole packets that readers take (AEDAT 4.0 events held for a packet go out as a shorter
-/// one).
+/// How often the daemon's file outputs hand what they hold to the operating system and ask it to
+/// put it on the disk (`fdatasync`): a daemon killed (SIGKILL) or a machine that lost power loses
+/// at most about this much of its events, and what it wrote before is whole packets that readers
+/// take (AEDAT 4.0 events held for a packet go out as a shorter one).
 pub const FLUSH_PERIOD: Duration = Duration::from_secs(1);
 
 /// Writes events to a file.
@@ -67,6 +67,8 @@ pub struct FileSink {
     /// `None` until the first flush, which comes with the first events (so a file killed
     /// after its first batch already has its header and that batch on disk).
     last_flush: Option<Instant>,
+    /// A second handle on the file, to sync what the encoder wrote (periodic flushes only).
+    sync: Option<std::fs::File>,
 }
 
 impl FileSink {
@@ -79,6 +81,7 @@ impl FileSink {
             stats: SinkStats::default(),
             flush_every: None,
             last_flush: None,
+            sync: None,
         })
     }
 
@@ -86,7 +89,29 @@ impl FileSink {
     /// `period` or more after the last flush.
     pub fn with_flush_period(mut self, period: Duration) -> Self {
         self.flush_every = Some(period);
+        // Syncing through any descriptor of the file puts its data on the disk.
+        self.sync = std::fs::File::open(&self.path).ok();
         self
+    }
+
+    /// Flushes the encoder, then has the data (and, the first time, the file's directory
+    /// entry) put on the disk, so a power loss keeps what was flushed.
+    fn flush_to_disk(&mut self) -> Result<()> {
+        self.encoder.flush()?;
+        if let Some(file) = &self.sync {
+            file.sync_data().map_err(|e| Error::io(&self.path, e))?;
+            if self.last_flush.is_none() {
+                let dir = match self.path.parent() {
+                    Some(p) if !p.as_os_str().is_empty() => p,
+                    _ => Path::new("."),
+                };
+                // A directory that cannot be opened to sync (some filesystems) is not fatal.
+                if let Ok(d) = std::fs::File::open(dir) {
+                    let _ = d.sync_all();
+                }
+            }
+        }
+        Ok(())
     }
 }
 
@@ -102,7 +127,7 @@ impl Sink for FileSink {
         self.stats.messages_sent += 1;
         if let Some(period) = self.flush_every {
             if self.last_flush.is_none_or(|at| at.elapsed() >= period) {
-                self.encoder.flush()?;
+                self.flush_to_disk()?;
                 self.last_flush = Some(Instant::now());
             }
         }
@@ -111,6 +136,9 @@ impl Sink for FileSink {
 
     fn finish(&mut self) -> Result<()> {
         self.encoder.finish()?;
+        if let Some(file) = &self.sync {
+            file.sync_data().map_err(|e| Error::io(&self.path, e))?;
+        }
         self.stats.bytes_sent = std::fs::metadata(&self.path).map_or(0, |m| m.len());
         Ok(())
     }
