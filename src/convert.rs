@@ -96,6 +96,92 @@ pub fn convert(
     })
 }
 
+/// One input converted to one event file: what `v2ce convert` and each item of `v2ce batch` do.
+#[derive(Debug, Clone)]
+pub struct FileJob {
+    /// A video, image folder, frame list, `.y4m`, `.aedat4` with APS frames, or
+    /// [`crate::frame::fixture::NAME`].
+    pub input: std::path::PathBuf,
+    /// The event file, written as its partial name until complete
+    /// ([`crate::format::PartialOutput`]).
+    pub output: std::path::PathBuf,
+    /// The output's format.
+    pub format: crate::format::Format,
+    /// How to read the input (frame rate of an image folder, colour space).
+    pub source: crate::frame::SourceOptions,
+    /// Resample frames to this size.
+    pub size: Option<(u16, u16)>,
+    /// Read at most this many frames.
+    pub max_frames: Option<u64>,
+    /// Also write Stage 1's voxels to this `.npy`.
+    pub write_voxels: Option<std::path::PathBuf>,
+}
+
+/// What [`convert_file`] tells its caller as it goes.
+pub trait FileJobObserver {
+    /// The input opened: a line saying what goes where, and the input's frame count when known.
+    fn started(&mut self, _line: &str, _frames: Option<u64>) {}
+    /// The report so far, a few times a second.
+    fn progress(&mut self, _report: &ConvertReport) {}
+}
+
+impl FileJobObserver for () {}
+
+/// Converts `job.input` to `job.output` with `config`: the input is opened, Stage 1 built for
+/// its frames, and the events written under the output's partial name, which is renamed when
+/// complete. On failure, or when `stop` ended it early ([`Error::Interrupted`]), the partial
+/// file stays and the error says where.
+pub fn convert_file(
+    job: &FileJob,
+    config: &Config,
+    stop: &AtomicBool,
+    observer: &mut dyn FileJobObserver,
+) -> Result<ConvertReport> {
+    let mut source = if job.input.as_os_str() == crate::frame::fixture::NAME {
+        crate::frame::fixture::open()?
+    } else {
+        crate::frame::open(&job.input, &job.source)?
+    };
+    if let Some(size) = job.size {
+        source = Box::new(crate::frame::resize::Resized::new(source, size)?);
+    }
+    let mut stage1 = build_stage1(config, source.as_ref())?;
+    let (w, h) = stage1.output_size();
+    let total = match (source.frames_hint(), job.max_frames) {
+        (Some(n), Some(m)) => Some(n.min(m)),
+        (n, m) => n.or(m),
+    };
+    observer.started(
+        &format!(
+            "{} -> {} (Stage 1 {}, {} x {})",
+            source.describe(),
+            job.output.display(),
+            stage1.describe(),
+            w,
+            h
+        ),
+        total,
+    );
+    let output = crate::format::PartialOutput::new(&job.output);
+    let sink = crate::sink::file::FileSink::create(output.writing(), job.format, w, h)?;
+    if let Some(path) = &job.write_voxels {
+        stage1 = Box::new(VoxelTap::new(stage1, path)?);
+    }
+    let sinks: Vec<Box<dyn Sink>> = vec![Box::new(sink)];
+    let report = convert(source, stage1, config, sinks, job.max_frames, stop, |r| {
+        observer.progress(r)
+    })
+    .map_err(|e| output.explain(e))?;
+    if stop.load(std::sync::atomic::Ordering::Relaxed) {
+        return Err(output.explain(Error::Interrupted(format!(
+            "stopped by a signal after {} frames, before the input ended",
+            report.frames
+        ))));
+    }
+    output.commit()?;
+    Ok(report)
+}
+
 /// A Stage 1 that also writes every voxel it hands on to a `.npy` file: float32
 /// `(intervals, 2*C, H, W)` in V2CE's channel layout (`polarity * C + node`, ON first), one
 /// interval after the other as they are made. The file is written under a temporary name

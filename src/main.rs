@@ -991,62 +991,50 @@ fn convert(args: ConvertArgs) -> Result<()> {
     if let Some(v) = &args.write_voxels {
         check_output(v, args.force)?;
     }
-    let options = v2ce::frame::SourceOptions {
-        fps: args.fps,
-        color: if args.linear {
-            v2ce::frame::images::ColorSpace::Linear
-        } else {
-            args.color
+    let job = v2ce::convert::FileJob {
+        input: args.input.clone(),
+        output: args.output.clone(),
+        format: args.encoding.format_for(&args.output)?,
+        source: v2ce::frame::SourceOptions {
+            fps: args.fps,
+            color: if args.linear {
+                v2ce::frame::images::ColorSpace::Linear
+            } else {
+                args.color
+            },
         },
+        size: args.size.as_deref().map(parse_size).transpose()?,
+        // 0 means no limit, as in `run` and `[run] max_frames`.
+        max_frames: args.max_frames.filter(|&m| m > 0),
+        write_voxels: args.write_voxels.clone(),
     };
-    let mut source = if args.input.as_os_str() == v2ce::frame::fixture::NAME {
-        v2ce::frame::fixture::open()?
-    } else {
-        v2ce::frame::open(&args.input, &options)?
-    };
-    if let Some(size) = &args.size {
-        source = Box::new(v2ce::frame::resize::Resized::new(
-            source,
-            parse_size(size)?,
-        )?);
+    /// Prints the start line, and progress on a terminal.
+    struct Terminal {
+        tty: bool,
+        total: Option<u64>,
     }
-    let mut stage1 = v2ce::convert::build_stage1(&config, source.as_ref())?;
-    let (w, h) = stage1.output_size();
-    eprintln!(
-        "v2ce: {} -> {} (Stage 1 {}, {} x {})",
-        source.describe(),
-        args.output.display(),
-        stage1.describe(),
-        w,
-        h
-    );
-    let fmt = args.encoding.format_for(&args.output)?;
-    let output = v2ce::format::PartialOutput::new(&args.output);
-    let sink = v2ce::sink::file::FileSink::create(output.writing(), fmt, w, h)?;
-    if let Some(path) = &args.write_voxels {
-        stage1 = Box::new(v2ce::convert::VoxelTap::new(stage1, path)?);
+    impl v2ce::convert::FileJobObserver for Terminal {
+        fn started(&mut self, line: &str, frames: Option<u64>) {
+            eprintln!("v2ce: {line}");
+            self.total = frames;
+        }
+        fn progress(&mut self, r: &v2ce::convert::ConvertReport) {
+            if self.tty {
+                eprint!(
+                    "\r  {}",
+                    progress_line(r.frames, self.total, r.events, r.seconds)
+                );
+            }
+        }
     }
-    let sinks: Vec<Box<dyn v2ce::sink::Sink>> = vec![Box::new(sink)];
     let tty = std::io::stderr().is_terminal();
     let stop = v2ce::daemon::stop_on_signals()?;
-    // 0 means no limit, as in `run` and `[run] max_frames`.
-    let max_frames = args.max_frames.filter(|&m| m > 0);
-    let total = match (source.frames_hint(), max_frames) {
-        (Some(n), Some(m)) => Some(n.min(m)),
-        (n, m) => n.or(m),
-    };
-    let report = v2ce::convert::convert(source, stage1, &config, sinks, max_frames, &stop, |r| {
-        if tty {
-            eprint!(
-                "\r  {}",
-                progress_line(r.frames, total, r.events, r.seconds)
-            );
-        }
-    })
-    .map_err(|e| output.explain(e))?;
+    let mut terminal = Terminal { tty, total: None };
+    let result = v2ce::convert::convert_file(&job, &config, &stop, &mut terminal);
     if tty {
         eprintln!();
     }
+    let report = result?;
     let s1 = &report.stage1;
     let detail = match s1.tier {
         "learned" => format!(
@@ -1083,13 +1071,7 @@ fn convert(args: ConvertArgs) -> Result<()> {
             report.repaired.clamped
         );
     }
-    if stop.load(std::sync::atomic::Ordering::Relaxed) {
-        return Err(output.explain(Error::Interrupted(format!(
-            "stopped by a signal after {} frames, before the input ended",
-            report.frames
-        ))));
-    }
-    output.commit()
+    Ok(())
 }
 
 /// Refuses to replace an existing file unless `force` (the `--force` flag).
