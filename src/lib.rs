@@ -6,6 +6,7 @@
 
 #![warn(missing_docs)]
 
+pub mod batch;
 pub mod calibrate;
 pub mod capture;
 pub mod config;
