@@ -2,6 +2,8 @@
 //! (`tests/python/crosscheck.py`): where the interpreter is, temporary folders, receivers.
 #![allow(dead_code)]
 
+pub mod batch;
+
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
