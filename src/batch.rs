@@ -570,6 +570,16 @@ impl Ledger {
             .append(true)
             .open(&path)
             .map_err(|e| Error::io(&path, e))?;
+        // One task per shard at a time: a second (a requeued task while the first still runs)
+        // would write the same partial files.
+        use std::os::fd::AsRawFd;
+        // SAFETY: flock on a descriptor this function owns; released when the file closes.
+        if unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } != 0 {
+            return Err(Error::Run(format!(
+                "shard {shard} is already running here ({} is locked)",
+                path.display()
+            )));
+        }
         Ok(Ledger {
             path,
             file: Mutex::new(file),

@@ -193,3 +193,31 @@ fn deployment_files_are_valid() {
         .unwrap();
     assert!(!o.status.success(), "a misspelt field passed: {}", text(&o));
 }
+
+/// Two tasks of one shard never run at once: the second is refused while the first holds its
+/// ledger (a requeued task would otherwise write the same partial files).
+#[test]
+fn one_task_per_shard_at_a_time() {
+    let dir = common::temp_dir("batch-lock");
+    dataset(&dir, 4, 320, 240, |_| 150);
+    let mut first = Command::new(env!("CARGO_BIN_EXE_v2ce"))
+        .args(["batch", "list.txt", "--out", "out", "--jobs", "1"])
+        .current_dir(&dir)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let started = Instant::now();
+    while partials(&dir.join("out")).is_empty() {
+        assert!(
+            started.elapsed() < Duration::from_secs(60),
+            "no output begun"
+        );
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let o = v2ce(&["batch", "list.txt", "--out", "out"], &dir);
+    let _ = first.kill();
+    first.wait().unwrap();
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    assert!(text(&o).contains("already running"), "{}", text(&o));
+}
