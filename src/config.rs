@@ -96,6 +96,11 @@ pub struct RunConfig {
     pub reconnect_min_ms: u64,
     /// Longest wait between reopening attempts, milliseconds.
     pub reconnect_max_ms: u64,
+    /// Serve `/metrics`, `/healthz`, `/readyz` and the live preview page on this `HOST:PORT`
+    /// (`""`: off; keep it on loopback unless the network is trusted: no authentication).
+    pub http: String,
+    /// `/readyz` says not ready when no frame came for this many seconds.
+    pub ready_timeout: f64,
 }
 
 impl Default for RunConfig {
@@ -125,6 +130,8 @@ impl Default for RunConfig {
             stats_interval: 10.0,
             reconnect_min_ms: 500,
             reconnect_max_ms: 10_000,
+            http: String::new(),
+            ready_timeout: 2.0,
         }
     }
 }
@@ -167,6 +174,13 @@ impl RunConfig {
         }
         crate::limits::seconds("run.duration", self.duration, true)?;
         crate::limits::seconds("run.stats_interval", self.stats_interval, false)?;
+        crate::limits::seconds("run.ready_timeout", self.ready_timeout, false)?;
+        if !self.http.is_empty() && self.http.parse::<std::net::SocketAddr>().is_err() {
+            return bad(
+                "run.http",
+                format!("'{}' (expected IP:PORT, e.g. 127.0.0.1:9464)", self.http),
+            );
+        }
         if !(1..=1024).contains(&self.queue_capacity) {
             return bad(
                 "run.queue_capacity",

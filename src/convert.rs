@@ -64,6 +64,7 @@ pub fn convert(
         duration: None,
         tick: Duration::from_millis(250),
         stop_flush_limit: None,
+        counters: None,
     };
     let mut on_tick = |s: &pipeline::stats::Snapshot| {
         progress(&ConvertReport {

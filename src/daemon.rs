@@ -181,6 +181,7 @@ pub fn options(run: &RunConfig) -> Options {
         tick: Duration::from_secs_f64(run.stats_interval),
         // The systemd unit gives a stop 20 s (TimeoutStopSec) for everything.
         stop_flush_limit: Some(Duration::from_secs(8)),
+        counters: None,
     }
 }
 
@@ -191,6 +192,60 @@ fn notify(state: &[sd_notify::NotifyState]) {
     }
 }
 
+/// Starts the HTTP listener when `[run] http` is set: shared counters for the pipeline, and a
+/// preview sink (added to `sinks`) for the page.
+fn start_http(
+    config: &Config,
+    what: &str,
+    stage1: &dyn crate::stage1::Stage1,
+    sinks: &mut Vec<Box<dyn crate::sink::Sink>>,
+) -> Result<Option<(crate::http::HttpServer, Arc<crate::http::Status>)>> {
+    if config.run.http.is_empty() {
+        return Ok(None);
+    }
+    let (w, h) = stage1.output_size();
+    let preview = crate::sink::preview::PreviewBuffer::new(w, h);
+    let mut settings: Vec<(String, String)> = vec![
+        ("source".into(), what.to_string()),
+        ("size".into(), format!("{w} x {h}")),
+        ("stage 1".into(), stage1.describe()),
+        (
+            "sampler".into(),
+            format!("{:?}", config.stage2.sampler).to_lowercase(),
+        ),
+        (
+            "queues".into(),
+            format!(
+                "{} x{}",
+                config.run.queue_policy.name(),
+                config.run.queue_capacity
+            ),
+        ),
+    ];
+    settings.extend(sinks.iter().map(|s| ("output".to_string(), s.describe())));
+    sinks.push(Box::new(crate::sink::preview::PreviewSink::new(
+        preview.clone(),
+    )));
+    let status = Arc::new(crate::http::Status {
+        counters: Arc::new(crate::pipeline::stats::Counters::new()),
+        preview,
+        tier: config.stage1.tier.name().into(),
+        preset: match config.stage1.tier {
+            crate::stage1::Tier::Physics => config.stage1.preset_name(),
+            _ => stage1.describe(),
+        },
+        settings,
+        stall: crate::limits::seconds("run.ready_timeout", config.run.ready_timeout, false)?,
+        running: std::sync::atomic::AtomicBool::new(false),
+    });
+    let server = crate::http::HttpServer::start(&config.run.http, status.clone())?;
+    tracing::info!(
+        "HTTP listener on http://{}/ (/metrics, /healthz, /readyz, the preview page)",
+        server.address()
+    );
+    Ok(Some((server, status)))
+}
+
 /// Runs the daemon until the source ends, `stop` is raised or a limit is reached; logs a stats
 /// line every `stats_interval` and mirrors it in the systemd status.
 pub fn run(config: &Config, stop: &AtomicBool) -> Result<Report> {
@@ -198,7 +253,8 @@ pub fn run(config: &Config, stop: &AtomicBool) -> Result<Report> {
     let (source, what) = open_source(config)?;
     let stage1 = crate::convert::build_stage1(config, source.first.as_ref())?;
     let (w, h) = stage1.output_size();
-    let sinks = open_sinks(config, w, h, source.pace.unwrap_or(1.0))?;
+    let mut sinks = open_sinks(config, w, h, source.pace.unwrap_or(1.0))?;
+    let http = start_http(config, &what, stage1.as_ref(), &mut sinks)?;
     let outputs: Vec<String> = sinks.iter().map(|s| s.describe()).collect();
     tracing::info!(
         "v2ce {}: {what} -> {} ({}x{}, Stage 1 {}, queues {} x{})",
@@ -243,7 +299,15 @@ pub fn run(config: &Config, stop: &AtomicBool) -> Result<Report> {
         sampler: config.stage2.sampler.build(config.stage2.seed),
         sinks,
     };
-    let report = pipeline::run(source, stages, &options(&config.run), stop, &mut on_tick);
+    let mut pipeline_options = options(&config.run);
+    pipeline_options.counters = http.as_ref().map(|(_, status)| status.counters.clone());
+    if let Some((_, status)) = &http {
+        status.running.store(true, Ordering::Relaxed);
+    }
+    let report = pipeline::run(source, stages, &pipeline_options, stop, &mut on_tick);
+    if let Some((_, status)) = &http {
+        status.running.store(false, Ordering::Relaxed);
+    }
     notify(&[sd_notify::NotifyState::Stopping]);
     let report = report?;
     let s = &report.stats;

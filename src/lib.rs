@@ -18,6 +18,7 @@ pub mod eval;
 pub mod event;
 pub mod format;
 pub mod frame;
+pub mod http;
 pub mod interval;
 pub mod limits;
 pub mod listen;

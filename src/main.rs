@@ -506,6 +506,13 @@ struct RunArgs {
     /// Seconds between stats lines [config default: 10].
     #[arg(long)]
     stats_interval: Option<f64>,
+    /// Serve /metrics, /healthz, /readyz and the live preview page on IP:PORT (port 0: any;
+    /// the address is logged) [config default: off]
+    #[arg(long, value_name = "IP:PORT")]
+    http: Option<String>,
+    /// /readyz turns not ready after this many seconds without a frame [config default: 2]
+    #[arg(long)]
+    ready_timeout: Option<f64>,
     /// Print the final report as one JSON object on stdout.
     #[arg(long)]
     json: bool,
@@ -931,6 +938,12 @@ fn run_config(args: &RunArgs) -> Result<Config> {
     }
     if let Some(v) = args.stats_interval {
         run.stats_interval = v;
+    }
+    if let Some(v) = &args.http {
+        run.http = v.clone();
+    }
+    if let Some(v) = args.ready_timeout {
+        run.ready_timeout = v;
     }
     if let Some(s) = args.seed {
         config.stage1.seed = s;

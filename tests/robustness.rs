@@ -515,6 +515,30 @@ fn cases(dir: &Path) -> Vec<Case> {
             vec!["run", "--source", "fixture", "--max-frames", "3"],
         ),
         (
+            "--ready-timeout",
+            vec![
+                "run",
+                "--source",
+                "fixture",
+                "--out",
+                "r.csv",
+                "--max-frames",
+                "3",
+            ],
+        ),
+        (
+            "--http",
+            vec![
+                "run",
+                "--source",
+                "fixture",
+                "--out",
+                "r.csv",
+                "--max-frames",
+                "3",
+            ],
+        ),
+        (
             "--emit-delay-ms",
             vec!["run", "--source", "fixture", "--max-frames", "3"],
         ),

@@ -105,6 +105,8 @@ pub struct Options {
     /// manager waits a bounded time for a stop, and a window of the learned tier on a CPU can
     /// take longer.
     pub stop_flush_limit: Option<Duration>,
+    /// Counters to update (shared with an HTTP listener); fresh ones when `None`.
+    pub counters: Option<Arc<Counters>>,
 }
 
 impl Default for Options {
@@ -116,6 +118,7 @@ impl Default for Options {
             duration: None,
             tick: Duration::from_secs(10),
             stop_flush_limit: None,
+            counters: None,
         }
     }
 }
@@ -262,7 +265,10 @@ pub fn run(
         return Err(Error::invalid("sinks", "no output configured"));
     }
     let size = source.first.size();
-    let counters = Arc::new(Counters::new());
+    let counters = options
+        .counters
+        .clone()
+        .unwrap_or_else(|| Arc::new(Counters::new()));
     let ctx = Ctx {
         stop,
         halt: AtomicBool::new(false),
@@ -452,7 +458,7 @@ fn capture_stage(
                     t.1 = Some(frame.t);
                 }
                 frames += 1;
-                Counters::bump(&ctx.counters.frames_in);
+                ctx.counters.frame_read();
                 let at = Instant::now();
                 // How far the capture is behind the frame's own time on the source's clock
                 // (anchored on its first frame; a camera's clock runs at 1x).
@@ -588,7 +594,9 @@ fn stage1_stage(
         true
     };
     let publish = |stage1: &dyn Stage1| {
-        *stats.lock().unwrap_or_else(|e| e.into_inner()) = stage1.stats();
+        let s = stage1.stats();
+        ctx.counters.set_stage1(s.clone());
+        *stats.lock().unwrap_or_else(|e| e.into_inner()) = s;
     };
     while let Some(item) = rx.recv() {
         if item.generation != generation {

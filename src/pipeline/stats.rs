@@ -31,6 +31,9 @@ pub struct Counters {
     queues: Mutex<Vec<Arc<QueueStats>>>,
     sinks: Mutex<Vec<SinkSnapshot>>,
     last: Mutex<Option<Mark>>,
+    /// Microseconds from `started` to the last frame read, plus one (0: none yet).
+    last_frame_us: AtomicU64,
+    stage1: Mutex<Option<crate::stage1::Stage1Stats>>,
 }
 
 struct LatencyPair {
@@ -53,13 +56,26 @@ impl LatencyPair {
         l.total.saturating_record(us.max(1));
     }
 
-    /// The interval's and the whole run's percentiles; starts a new interval.
-    fn take(m: &Mutex<Self>) -> (Latency, Latency) {
+    /// The interval's and the whole run's percentiles; starts a new interval when `advance`.
+    fn take(m: &Mutex<Self>, advance: bool) -> (Latency, Latency) {
         let mut l = lock(m);
         let pair = (Latency::of(&l.interval), Latency::of(&l.total));
-        l.interval.reset();
+        if advance {
+            l.interval.reset();
+        }
         pair
     }
+}
+
+/// A latency histogram over the whole run in cumulative buckets (the Prometheus form).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Buckets {
+    /// (upper bound in seconds, samples at or below it), bounds increasing.
+    pub buckets: Vec<(f64, u64)>,
+    /// Samples.
+    pub count: u64,
+    /// Sum of the samples, seconds (from the histogram: 3 significant digits).
+    pub sum_s: f64,
 }
 
 /// Which part of a frame's way a duration measures (see [`Counters::record`]).
@@ -231,6 +247,15 @@ fn histogram() -> Histogram<u64> {
     Histogram::new_with_bounds(1, 3_600_000_000, 3).expect("constant, valid histogram bounds")
 }
 
+impl std::fmt::Debug for Counters {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Counters")
+            .field("frames_in", &self.frames_in)
+            .field("events_out", &self.events_out)
+            .finish_non_exhaustive()
+    }
+}
+
 impl Default for Counters {
     fn default() -> Self {
         Self::new()
@@ -254,6 +279,69 @@ impl Counters {
             queues: Mutex::new(Vec::new()),
             sinks: Mutex::new(Vec::new()),
             last: Mutex::new(None),
+            last_frame_us: AtomicU64::new(0),
+            stage1: Mutex::new(None),
+        }
+    }
+
+    /// Counts a frame read from the source, and when.
+    pub fn frame_read(&self) {
+        self.frames_in.fetch_add(1, Ordering::Relaxed);
+        let us = self.started.elapsed().as_micros().min(u64::MAX as u128 - 1) as u64;
+        self.last_frame_us.store(us + 1, Ordering::Relaxed);
+    }
+
+    /// How long ago the last frame was read (`None` before the first).
+    pub fn last_frame_age(&self) -> Option<Duration> {
+        match self.last_frame_us.load(Ordering::Relaxed) {
+            0 => None,
+            us => Some(
+                self.started
+                    .elapsed()
+                    .saturating_sub(Duration::from_micros(us - 1)),
+            ),
+        }
+    }
+
+    /// Publishes Stage 1's counters (the Stage 1 thread, now and then).
+    pub fn set_stage1(&self, stats: crate::stage1::Stage1Stats) {
+        *lock(&self.stage1) = Some(stats);
+    }
+
+    /// Stage 1's counters as last published.
+    pub fn stage1(&self) -> crate::stage1::Stage1Stats {
+        lock(&self.stage1).clone().unwrap_or_default()
+    }
+
+    /// The whole run's histogram of `timing` in cumulative buckets with upper `bounds_s`.
+    pub fn histogram(&self, timing: Timing, bounds_s: &[f64]) -> Buckets {
+        let l = lock(self.pair(timing));
+        let h = &l.total;
+        let buckets = bounds_s
+            .iter()
+            .map(|&b| {
+                let us = (b * 1e6) as u64;
+                let count = if h.is_empty() {
+                    0
+                } else {
+                    h.count_between(0, us.min(h.high()))
+                };
+                (b, count)
+            })
+            .collect();
+        Buckets {
+            buckets,
+            count: h.len(),
+            sum_s: h.mean() * h.len() as f64 / 1e6,
+        }
+    }
+
+    fn pair(&self, timing: Timing) -> &Mutex<LatencyPair> {
+        match timing {
+            Timing::CaptureLag => &self.capture_lag,
+            Timing::Processing => &self.processing,
+            Timing::Emission => &self.emission,
+            Timing::Latency => &self.latency,
         }
     }
 
@@ -295,13 +383,7 @@ impl Counters {
 
     /// Records one duration of `timing`.
     pub fn record(&self, timing: Timing, d: Duration) {
-        let m = match timing {
-            Timing::CaptureLag => &self.capture_lag,
-            Timing::Processing => &self.processing,
-            Timing::Emission => &self.emission,
-            Timing::Latency => &self.latency,
-        };
-        LatencyPair::record(m, d);
+        LatencyPair::record(self.pair(timing), d);
     }
 
     /// The state now, with rates over the whole run (the final report).
@@ -312,12 +394,22 @@ impl Counters {
 
     /// The state now; rates and the interval latency cover the time since the previous call.
     pub fn snapshot(&self) -> Snapshot {
+        self.state(true)
+    }
+
+    /// The state now, leaving the interval of [`Counters::snapshot`] alone (an HTTP scrape
+    /// between two stats lines): rates and interval latency since the previous snapshot.
+    pub fn peek(&self) -> Snapshot {
+        self.state(false)
+    }
+
+    fn state(&self, advance: bool) -> Snapshot {
         let now = Instant::now();
         let usage = ProcessUsage::now();
-        let (latency, latency_total) = LatencyPair::take(&self.latency);
-        let (capture_lag, capture_lag_total) = LatencyPair::take(&self.capture_lag);
-        let (_, processing_total) = LatencyPair::take(&self.processing);
-        let (_, emission_total) = LatencyPair::take(&self.emission);
+        let (latency, latency_total) = LatencyPair::take(&self.latency, advance);
+        let (capture_lag, capture_lag_total) = LatencyPair::take(&self.capture_lag, advance);
+        let (_, processing_total) = LatencyPair::take(&self.processing, advance);
+        let (_, emission_total) = LatencyPair::take(&self.emission, advance);
         let queues: Vec<QueueSnapshot> = lock(&self.queues)
             .iter()
             .map(|q| QueueSnapshot {
@@ -343,12 +435,14 @@ impl Counters {
             frames_in,
             cpu_s: usage.cpu_s,
         };
-        let previous = lock(&self.last).replace(mark).unwrap_or(Mark {
+        let mut last = lock(&self.last);
+        let previous = if advance { last.replace(mark) } else { *last }.unwrap_or(Mark {
             at: self.started,
             events_out: 0,
             frames_in: 0,
             cpu_s: 0.0,
         });
+        drop(last);
         let dt = (now - previous.at).as_secs_f64().max(1e-9);
         Snapshot {
             uptime_s: (now - self.started).as_secs_f64(),

@@ -11,6 +11,7 @@
 
 pub mod emit;
 pub mod file;
+pub mod preview;
 pub mod tcp;
 pub mod udp;
 

@@ -5,6 +5,8 @@ environment; each mode compares what a third-party reader gets with an expected 
 (`t_us,x,y,on`) and exits 0 on an exact match, 1 on a mismatch, 2 on a timeout.
 
     crosscheck.py files READER PATH EXPECTED.csv [PATH EXPECTED.csv ...]   each pair, offset 0
+    crosscheck.py prom METRICS.txt   parses Prometheus text with prometheus_client's parser and
+                                     prints every sample as JSON lines {name, labels, value}
     crosscheck.py file READER PATH EXPECTED.csv [T_OFFSET]   READER: faery | aedat | dv |
                                                                aestream | expelliarmus |
                                                                numpy | h5py
@@ -296,6 +298,18 @@ def main(argv):
         got = READERS[reader](path)
         got[:, 0] += offset
         return compare(got, want, f"{reader} reading {os.path.basename(path)}")
+    if mode == "prom":
+        import json
+        from prometheus_client.parser import text_string_to_metric_families
+
+        with open(argv[2]) as f:
+            text = f.read()
+        for family in text_string_to_metric_families(text):
+            for sample in family.samples:
+                print(json.dumps({"family": family.name, "type": family.type,
+                                  "name": sample.name, "labels": sample.labels,
+                                  "value": sample.value}))
+        return 0
     if mode == "files":
         reader, pairs = argv[2], argv[3:]
         watchdog(600, f"{reader} reading {len(pairs) // 2} files")

@@ -1,0 +1,682 @@
+//! The daemon's optional HTTP listener (`[run] http`, off by default, loopback unless set
+//! otherwise), on `tiny_http`:
+//!
+//! | path | what |
+//! |---|---|
+//! | `/metrics` | Prometheus text format: frames, events per sink, drops by cause, queue depths, latency histograms, CPU, RSS, Stage 1 |
+//! | `/healthz` | 200 while the process is up |
+//! | `/readyz` | 200 when the pipeline runs, a frame came within the stall timeout and no output failed; else 503 and why |
+//! | `/` | the live preview page (no external assets) |
+//! | `/events?window_ms=N` | the page's server-sent events: the event frame (a PNG) and the stats, 5 times a second |
+//!
+//! A scrape reads the pipeline's atomic counters and takes its histograms' locks for a copy;
+//! the stage threads never wait on the listener (a slow client blocks only its own thread).
+
+use std::fmt::Write as _;
+use std::io::Write as _;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use crate::error::{Error, Result};
+use crate::pipeline::stats::{Counters, Timing};
+use crate::sink::preview::PreviewBuffer;
+
+/// Server-sent event streams served at once; more get 503.
+pub const MAX_STREAMS: usize = 8;
+/// How often the page gets a frame.
+pub const PUSH_PERIOD: Duration = Duration::from_millis(200);
+
+/// What the listener reports, shared with the daemon.
+pub struct Status {
+    /// The pipeline's counters.
+    pub counters: Arc<Counters>,
+    /// The recent events, for the page.
+    pub preview: Arc<PreviewBuffer>,
+    /// Stage 1's tier and preset, for `v2ce_stage1_info`.
+    pub tier: String,
+    /// The physics preset (or the model, for the learned tier).
+    pub preset: String,
+    /// Settings shown on the page, in order.
+    pub settings: Vec<(String, String)>,
+    /// No frame for this long: not ready.
+    pub stall: Duration,
+    /// Set while the pipeline runs.
+    pub running: AtomicBool,
+}
+
+impl Status {
+    /// Why the daemon is not ready, or `Ok` when it is.
+    pub fn readiness(&self) -> std::result::Result<(), String> {
+        if !self.running.load(Ordering::Relaxed) {
+            return Err("the pipeline is not running".into());
+        }
+        match self.counters.last_frame_age() {
+            None => return Err("no frame yet".into()),
+            Some(age) if age > self.stall => {
+                return Err(format!(
+                    "no frame for {:.1} s (the source stalled)",
+                    age.as_secs_f64()
+                ))
+            }
+            Some(_) => {}
+        }
+        let snapshot = self.counters.peek();
+        if let Some(s) = snapshot.sinks.iter().find(|s| s.failed.is_some()) {
+            return Err(format!(
+                "output down: {}",
+                s.failed.as_deref().unwrap_or(&s.sink)
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Escapes a Prometheus label value.
+fn label(v: &str) -> String {
+    v.replace('\\', "\\\\")
+        .replace('"', "\\\"")
+        .replace('\n', "\\n")
+}
+
+/// Bucket bounds of the latency histograms, seconds.
+pub const BUCKETS_S: [f64; 14] = [
+    0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0,
+];
+
+/// The `/metrics` text (Prometheus exposition format 0.0.4).
+pub fn metrics(status: &Status) -> String {
+    let s = status.counters.peek();
+    let mut out = String::with_capacity(8192);
+    let head = |out: &mut String, name: &str, kind: &str, help: &str| {
+        let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} {kind}");
+    };
+    head(
+        &mut out,
+        "v2ce_frames_total",
+        "counter",
+        "Frames read from the source.",
+    );
+    let _ = writeln!(out, "v2ce_frames_total {}", s.frames_in);
+    head(
+        &mut out,
+        "v2ce_frames_processed_total",
+        "counter",
+        "Frames through Stage 1.",
+    );
+    let _ = writeln!(out, "v2ce_frames_processed_total {}", s.frames_processed);
+    head(
+        &mut out,
+        "v2ce_frames_dropped_total",
+        "counter",
+        "Frames dropped, by cause: evicted from a full queue, or out of order.",
+    );
+    let _ = writeln!(
+        out,
+        "v2ce_frames_dropped_total{{cause=\"queue\"}} {}\nv2ce_frames_dropped_total{{cause=\"out_of_order\"}} {}",
+        s.frames_dropped.saturating_sub(s.frames_out_of_order),
+        s.frames_out_of_order
+    );
+    head(
+        &mut out,
+        "v2ce_source_restarts_total",
+        "counter",
+        "Times the source was reopened (a camera back, a replay looped).",
+    );
+    let _ = writeln!(out, "v2ce_source_restarts_total {}", s.source_restarts);
+    head(
+        &mut out,
+        "v2ce_events_total",
+        "counter",
+        "Events handed to the outputs.",
+    );
+    let _ = writeln!(out, "v2ce_events_total {}", s.events_out);
+    head(
+        &mut out,
+        "v2ce_sink_events_total",
+        "counter",
+        "Events per output, by result: sent (handed to the kernel or written), dropped, refused (UDP port closed).",
+    );
+    for k in &s.sinks {
+        let n = label(&k.sink);
+        let st = &k.stats;
+        let _ = writeln!(
+            out,
+            "v2ce_sink_events_total{{sink=\"{n}\",result=\"sent\"}} {}\n\
+             v2ce_sink_events_total{{sink=\"{n}\",result=\"dropped\"}} {}\n\
+             v2ce_sink_events_total{{sink=\"{n}\",result=\"refused\"}} {}",
+            st.events_sent, st.events_dropped, st.events_refused
+        );
+    }
+    head(
+        &mut out,
+        "v2ce_sink_late_events_total",
+        "counter",
+        "Events sent after their due time (emission at event time).",
+    );
+    for k in &s.sinks {
+        let _ = writeln!(
+            out,
+            "v2ce_sink_late_events_total{{sink=\"{}\"}} {}",
+            label(&k.sink),
+            k.stats.events_late
+        );
+    }
+    head(
+        &mut out,
+        "v2ce_sink_sent_bytes_total",
+        "counter",
+        "Bytes sent or written per output.",
+    );
+    for k in &s.sinks {
+        let _ = writeln!(
+            out,
+            "v2ce_sink_sent_bytes_total{{sink=\"{}\"}} {}",
+            label(&k.sink),
+            k.stats.bytes_sent
+        );
+    }
+    head(
+        &mut out,
+        "v2ce_sink_clients",
+        "gauge",
+        "Clients connected (TCP outputs).",
+    );
+    for k in &s.sinks {
+        let _ = writeln!(
+            out,
+            "v2ce_sink_clients{{sink=\"{}\"}} {}",
+            label(&k.sink),
+            k.stats.clients
+        );
+    }
+    head(
+        &mut out,
+        "v2ce_sink_up",
+        "gauge",
+        "1 while the output works, 0 once it failed.",
+    );
+    for k in &s.sinks {
+        let _ = writeln!(
+            out,
+            "v2ce_sink_up{{sink=\"{}\"}} {}",
+            label(&k.sink),
+            u8::from(k.failed.is_none())
+        );
+    }
+    head(
+        &mut out,
+        "v2ce_queue_depth",
+        "gauge",
+        "Items waiting in each queue between stages.",
+    );
+    for q in &s.queues {
+        let _ = writeln!(
+            out,
+            "v2ce_queue_depth{{queue=\"{}\"}} {}",
+            label(&q.name),
+            q.depth
+        );
+    }
+    head(
+        &mut out,
+        "v2ce_queue_capacity",
+        "gauge",
+        "Capacity of each queue.",
+    );
+    for q in &s.queues {
+        let _ = writeln!(
+            out,
+            "v2ce_queue_capacity{{queue=\"{}\"}} {}",
+            label(&q.name),
+            q.capacity
+        );
+    }
+    head(
+        &mut out,
+        "v2ce_queue_dropped_events_total",
+        "counter",
+        "Events in items a full queue evicted (drop-oldest).",
+    );
+    for q in &s.queues {
+        let _ = writeln!(
+            out,
+            "v2ce_queue_dropped_events_total{{queue=\"{}\"}} {}",
+            label(&q.name),
+            q.dropped_events
+        );
+    }
+    for (name, timing, help) in [
+        (
+            "v2ce_capture_lag_seconds",
+            Timing::CaptureLag,
+            "Lag of a frame's capture behind its own time.",
+        ),
+        (
+            "v2ce_processing_seconds",
+            Timing::Processing,
+            "From a frame's capture to its interval's events leaving Stage 2.",
+        ),
+        (
+            "v2ce_emission_seconds",
+            Timing::Emission,
+            "From a batch reaching an output to its last event having left.",
+        ),
+        (
+            "v2ce_latency_seconds",
+            Timing::Latency,
+            "From a frame's capture to its events having left, per output.",
+        ),
+    ] {
+        head(&mut out, name, "histogram", help);
+        let h = status.counters.histogram(timing, &BUCKETS_S);
+        for (le, count) in &h.buckets {
+            let _ = writeln!(out, "{name}_bucket{{le=\"{le}\"}} {count}");
+        }
+        let _ = writeln!(
+            out,
+            "{name}_bucket{{le=\"+Inf\"}} {}\n{name}_sum {}\n{name}_count {}",
+            h.count, h.sum_s, h.count
+        );
+    }
+    let s1 = status.counters.stage1();
+    head(
+        &mut out,
+        "v2ce_stage1_info",
+        "gauge",
+        "Stage 1's tier and preset (always 1).",
+    );
+    let _ = writeln!(
+        out,
+        "v2ce_stage1_info{{tier=\"{}\",preset=\"{}\"}} 1",
+        label(&status.tier),
+        label(&status.preset)
+    );
+    head(
+        &mut out,
+        "v2ce_stage1_windows_total",
+        "counter",
+        "Windows the learned tier ran, by result (run, skipped as still).",
+    );
+    let _ = writeln!(
+        out,
+        "v2ce_stage1_windows_total{{result=\"run\"}} {}\nv2ce_stage1_windows_total{{result=\"skipped\"}} {}",
+        s1.learned.windows, s1.learned.windows_skipped
+    );
+    head(
+        &mut out,
+        "v2ce_stage1_window_seconds",
+        "gauge",
+        "The learned tier's window latency, median so far.",
+    );
+    let _ = writeln!(
+        out,
+        "v2ce_stage1_window_seconds {}",
+        s1.learned.window_ms_p50 / 1e3
+    );
+    head(
+        &mut out,
+        "v2ce_stage1_tiles_total",
+        "counter",
+        "Tiles the pixel model updated or skipped as static.",
+    );
+    let _ = writeln!(
+        out,
+        "v2ce_stage1_tiles_total{{result=\"active\"}} {}\nv2ce_stage1_tiles_total{{result=\"skipped\"}} {}",
+        s1.physics.tiles_active, s1.physics.tiles_skipped
+    );
+    head(
+        &mut out,
+        "process_cpu_seconds_total",
+        "counter",
+        "User and system CPU time of the process.",
+    );
+    let _ = writeln!(out, "process_cpu_seconds_total {}", s.cpu_s);
+    head(
+        &mut out,
+        "process_resident_memory_bytes",
+        "gauge",
+        "Resident memory of the process.",
+    );
+    let _ = writeln!(out, "process_resident_memory_bytes {}", s.rss_kib * 1024);
+    head(
+        &mut out,
+        "v2ce_uptime_seconds",
+        "gauge",
+        "Seconds since the pipeline started.",
+    );
+    let _ = writeln!(out, "v2ce_uptime_seconds {}", s.uptime_s);
+    head(
+        &mut out,
+        "v2ce_ready",
+        "gauge",
+        "1 when /readyz answers 200.",
+    );
+    let _ = writeln!(out, "v2ce_ready {}", u8::from(status.readiness().is_ok()));
+    out
+}
+
+/// The preview page: one static document, no external assets.
+pub const PAGE: &str = include_str!("http_page.html");
+
+fn base64(data: &[u8]) -> String {
+    use base64::Engine;
+    base64::engine::general_purpose::STANDARD.encode(data)
+}
+
+/// The `window_ms` of a query string: 1 ms to the preview's whole buffer, 33 by default.
+fn window_ms(query: &str) -> f64 {
+    query
+        .split('&')
+        .find_map(|kv| kv.strip_prefix("window_ms="))
+        .and_then(|v| v.parse::<f64>().ok())
+        .filter(|v| v.is_finite() && *v >= 1.0)
+        .unwrap_or(33.0)
+        .min(crate::sink::preview::KEEP_US as f64 / 1e3)
+}
+
+/// The page with the settings and the current frame filled in (so it shows events at once,
+/// before the first push).
+fn page(status: &Status, window_ms: f64) -> String {
+    // Inside a <script>: no "</" may appear.
+    let settings = serde_json::to_string(&status.settings)
+        .unwrap_or_else(|_| "[]".into())
+        .replace('<', "\\u003c");
+    let (png, _) = frame_png(status, (window_ms * 1e3) as i64);
+    PAGE.replace("SETTINGS_JSON", &settings)
+        .replace(
+            "INITIAL_FRAME",
+            &format!("data:image/png;base64,{}", base64(&png)),
+        )
+        .replace("WINDOW_MS", &format!("{}", window_ms.round()))
+}
+
+/// The frame of the last `window_us` as a PNG, and how many events it shows.
+fn frame_png(status: &Status, window_us: i64) -> (Vec<u8>, usize) {
+    let (w, h) = status.preview.size();
+    let (rgb, shown) = status.preview.frame(window_us);
+    let mut png = Vec::new();
+    let encoded = image::codecs::png::PngEncoder::new(&mut png);
+    if image::ImageEncoder::write_image(
+        encoded,
+        &rgb,
+        u32::from(w),
+        u32::from(h),
+        image::ExtendedColorType::Rgb8,
+    )
+    .is_err()
+    {
+        png.clear();
+    }
+    (png, shown)
+}
+
+/// One server-sent event: the frame of the last `window_us` as a PNG and the stats.
+fn frame_event(status: &Status, window_us: i64) -> String {
+    let (w, h) = status.preview.size();
+    let (png, shown) = frame_png(status, window_us);
+    let s = status.counters.peek();
+    let body = serde_json::json!({
+        "png": base64(&png),
+        "width": w,
+        "height": h,
+        "shown": shown,
+        "window_ms": window_us as f64 / 1e3,
+        "line": s.line(),
+        "frames": s.frames_in,
+        "events": s.events_out,
+        "ready": status.readiness().err().unwrap_or_else(|| "ready".into()),
+    });
+    format!("data: {body}\n\n")
+}
+
+/// The running listener.
+pub struct HttpServer {
+    server: Arc<tiny_http::Server>,
+    stop: Arc<AtomicBool>,
+    thread: Option<std::thread::JoinHandle<()>>,
+    address: std::net::SocketAddr,
+}
+
+impl HttpServer {
+    /// Listens on `address` (HOST:PORT; port 0 picks one) and serves `status`.
+    pub fn start(address: &str, status: Arc<Status>) -> Result<HttpServer> {
+        let server = tiny_http::Server::http(address)
+            .map_err(|e| Error::invalid("run.http", format!("cannot listen on {address}: {e}")))?;
+        let bound = server
+            .server_addr()
+            .to_ip()
+            .ok_or_else(|| Error::invalid("run.http", format!("{address} is not an IP address")))?;
+        let server = Arc::new(server);
+        let stop = Arc::new(AtomicBool::new(false));
+        let thread = std::thread::Builder::new()
+            .name("http".into())
+            .spawn({
+                let (server, stop) = (server.clone(), stop.clone());
+                move || serve(&server, &status, &stop)
+            })
+            .map_err(|e| Error::Run(format!("cannot start the HTTP thread: {e}")))?;
+        Ok(HttpServer {
+            server,
+            stop,
+            thread: Some(thread),
+            address: bound,
+        })
+    }
+
+    /// The address it listens on.
+    pub fn address(&self) -> std::net::SocketAddr {
+        self.address
+    }
+}
+
+impl Drop for HttpServer {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        self.server.unblock();
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+fn serve(server: &tiny_http::Server, status: &Arc<Status>, stop: &Arc<AtomicBool>) {
+    let streams = Arc::new(AtomicUsize::new(0));
+    while !stop.load(Ordering::Relaxed) {
+        let request = match server.recv_timeout(Duration::from_millis(200)) {
+            Ok(Some(r)) => r,
+            Ok(None) => continue,
+            Err(e) => {
+                tracing::warn!("HTTP listener: {e}");
+                continue;
+            }
+        };
+        let url = request.url().to_string();
+        let (path, query) = url.split_once('?').unwrap_or((&url, ""));
+        let text = |code: u16, body: String, kind: &str| {
+            let header = tiny_http::Header::from_bytes(&b"Content-Type"[..], kind.as_bytes())
+                .expect("a valid constant header");
+            tiny_http::Response::from_string(body)
+                .with_status_code(code)
+                .with_header(header)
+        };
+        let plain = "text/plain; charset=utf-8";
+        let response = match path {
+            "/metrics" => text(
+                200,
+                metrics(status),
+                "text/plain; version=0.0.4; charset=utf-8",
+            ),
+            "/healthz" => text(200, "ok\n".into(), plain),
+            "/readyz" => match status.readiness() {
+                Ok(()) => text(200, "ready\n".into(), plain),
+                Err(why) => text(503, format!("not ready: {why}\n"), plain),
+            },
+            "/" | "/index.html" => text(
+                200,
+                page(status, window_ms(query)),
+                "text/html; charset=utf-8",
+            ),
+            "/events" => {
+                let window_ms = window_ms(query);
+                if streams.fetch_add(1, Ordering::Relaxed) >= MAX_STREAMS {
+                    streams.fetch_sub(1, Ordering::Relaxed);
+                    let _ =
+                        request.respond(text(503, "too many preview pages open\n".into(), plain));
+                    continue;
+                }
+                let (status, stop, streams) = (status.clone(), stop.clone(), streams.clone());
+                let spawned = std::thread::Builder::new()
+                    .name("http-events".into())
+                    .spawn(move || {
+                        stream_events(request, &status, &stop, (window_ms * 1e3) as i64);
+                        streams.fetch_sub(1, Ordering::Relaxed);
+                    });
+                if spawned.is_err() {
+                    tracing::warn!("HTTP listener: no thread for a preview stream");
+                }
+                continue;
+            }
+            _ => text(404, "not found\n".into(), plain),
+        };
+        if let Err(e) = request.respond(response) {
+            tracing::debug!("HTTP response: {e}");
+        }
+    }
+}
+
+/// Writes server-sent events to the client until it goes away or the listener stops, each
+/// flushed as it is made.
+fn stream_events(request: tiny_http::Request, status: &Status, stop: &AtomicBool, window_us: i64) {
+    let mut w = request.into_writer();
+    let head = "HTTP/1.1 200 OK\r\nContent-Type: text/event-stream\r\nCache-Control: no-store\r\n\
+                Connection: close\r\n\r\n";
+    if w.write_all(head.as_bytes())
+        .and_then(|()| w.flush())
+        .is_err()
+    {
+        return;
+    }
+    let mut next = Instant::now();
+    while !stop.load(Ordering::Relaxed) {
+        let message = frame_event(status, window_us);
+        if w.write_all(message.as_bytes())
+            .and_then(|()| w.flush())
+            .is_err()
+        {
+            return;
+        }
+        next += PUSH_PERIOD;
+        let now = Instant::now();
+        if next > now {
+            std::thread::sleep(next - now);
+        } else {
+            next = now;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sink::SinkStats;
+
+    fn status() -> Status {
+        let counters = Arc::new(Counters::new());
+        let i = counters.add_sink("file \"a\\b\".csv".into());
+        counters.update_sink(
+            i,
+            SinkStats {
+                events_in: 7,
+                events_sent: 5,
+                events_dropped: 2,
+                ..SinkStats::default()
+            },
+            None,
+        );
+        counters.frame_read();
+        counters.record(Timing::Latency, Duration::from_millis(3));
+        counters.record(Timing::Latency, Duration::from_millis(300));
+        Status {
+            counters,
+            preview: PreviewBuffer::new(4, 3),
+            tier: "physics".into(),
+            preset: "davis346".into(),
+            settings: vec![("source".into(), "</script>".into())],
+            stall: Duration::from_secs(60),
+            running: AtomicBool::new(true),
+        }
+    }
+
+    #[test]
+    fn metrics_follow_the_text_format() {
+        let s = status();
+        let text = metrics(&s);
+        assert!(text.contains("v2ce_frames_total 1\n"), "{text}");
+        // Label values escaped; every result of the sink.
+        assert!(
+            text.contains(
+                "v2ce_sink_events_total{sink=\"file \\\"a\\\\b\\\".csv\",result=\"dropped\"} 2"
+            ),
+            "{text}"
+        );
+        // Histogram buckets cumulative, ending in +Inf with the count.
+        assert!(
+            text.contains("v2ce_latency_seconds_bucket{le=\"0.005\"} 1\n"),
+            "{text}"
+        );
+        assert!(
+            text.contains("v2ce_latency_seconds_bucket{le=\"0.5\"} 2\n"),
+            "{text}"
+        );
+        assert!(
+            text.contains("v2ce_latency_seconds_bucket{le=\"+Inf\"} 2\n"),
+            "{text}"
+        );
+        assert!(text.contains("v2ce_latency_seconds_count 2\n"), "{text}");
+        assert!(text.contains("v2ce_stage1_info{tier=\"physics\",preset=\"davis346\"} 1"));
+        assert!(text.contains("v2ce_ready 1\n"), "{text}");
+        // Every sample line belongs to a family declared before it.
+        let mut declared = std::collections::HashSet::new();
+        for line in text.lines() {
+            if let Some(rest) = line.strip_prefix("# TYPE ") {
+                declared.insert(rest.split(' ').next().unwrap().to_string());
+            } else if !line.starts_with('#') {
+                let name = line.split(['{', ' ']).next().unwrap();
+                let family = ["_bucket", "_sum", "_count"]
+                    .iter()
+                    .find_map(|s| name.strip_suffix(s).filter(|f| declared.contains(*f)))
+                    .unwrap_or(name);
+                assert!(declared.contains(family), "{line}");
+            }
+        }
+    }
+
+    #[test]
+    fn readiness_needs_a_recent_frame_and_a_running_pipeline() {
+        let mut s = status();
+        assert_eq!(s.readiness(), Ok(()));
+        s.stall = Duration::ZERO;
+        std::thread::sleep(Duration::from_millis(2));
+        assert!(s.readiness().unwrap_err().contains("stalled"));
+        s.running.store(false, Ordering::Relaxed);
+        assert!(s.readiness().unwrap_err().contains("not running"));
+    }
+
+    #[test]
+    fn the_page_is_self_contained_and_escapes_settings() {
+        let s = status();
+        let html = page(&s, 100.0);
+        assert!(
+            !html.contains("</script>\""),
+            "settings break out of the script"
+        );
+        assert!(html.contains("\\u003c/script>"));
+        assert!(html.contains("data:image/png;base64,"));
+        assert!(!html.contains("SETTINGS_JSON") && !html.contains("INITIAL_FRAME"));
+        assert!(!html.contains("http://") && !html.contains("https://"));
+        assert_eq!(window_ms("window_ms=100"), 100.0);
+        assert_eq!(window_ms("window_ms=nan"), 33.0);
+        assert_eq!(window_ms("window_ms=1e9"), 1000.0);
+    }
+}

@@ -1,0 +1,427 @@
+//! The daemon's HTTP listener (`[run] http`): `/metrics` scraped during a replay fed through a
+//! named pipe, parsed by prometheus_client's parser and checked against the final report;
+//! `/readyz` unready while the pipe stalls and ready again when frames resume; `/healthz`; and
+//! the preview page loaded in headless Chromium, its screenshots showing events where the
+//! fixture moves and changing over time (kept in `target/test-output/`).
+
+mod common;
+
+use std::io::{BufRead, Read, Write};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+/// A daemon with the listener on a free port; its stderr lines are collected.
+struct Daemon {
+    child: Child,
+    lines: Arc<Mutex<Vec<String>>>,
+    address: String,
+}
+
+impl Daemon {
+    fn start(args: &[&str], dir: &Path) -> Daemon {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_v2ce"))
+            .arg("run")
+            .args(args)
+            .args(["--http", "127.0.0.1:0"])
+            .current_dir(dir)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let lines = Arc::new(Mutex::new(Vec::new()));
+        let stderr = child.stderr.take().unwrap();
+        std::thread::spawn({
+            let lines = lines.clone();
+            move || {
+                for line in std::io::BufReader::new(stderr).lines() {
+                    let Ok(line) = line else { break };
+                    lines.lock().unwrap().push(line);
+                }
+            }
+        });
+        let started = Instant::now();
+        let address = loop {
+            let found = lines.lock().unwrap().iter().find_map(|l| {
+                let at = l.find("http://")?;
+                Some(l[at + 7..].trim_end_matches('/').trim().to_string())
+            });
+            if let Some(a) = found {
+                break a.split('/').next().unwrap_or("").to_string();
+            }
+            assert!(
+                started.elapsed() < Duration::from_secs(30),
+                "no listener line: {:?}",
+                lines.lock().unwrap()
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        };
+        Daemon {
+            child,
+            lines,
+            address,
+        }
+    }
+
+    /// GET `path`: the status code and the body.
+    fn get(&self, path: &str) -> (u16, String) {
+        if std::net::TcpStream::connect(&self.address).is_err() {
+            panic!(
+                "cannot connect to {} for {path}; the daemon said: {}",
+                self.address,
+                self.lines.lock().unwrap().join("\n")
+            );
+        }
+        get(&self.address, path)
+    }
+}
+
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn get(address: &str, path: &str) -> (u16, String) {
+    let mut s = std::net::TcpStream::connect(address).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    write!(s, "GET {path} HTTP/1.0\r\nHost: {address}\r\n\r\n").unwrap();
+    let mut text = String::new();
+    s.read_to_string(&mut text).unwrap();
+    let code = text
+        .split_whitespace()
+        .nth(1)
+        .and_then(|c| c.parse().ok())
+        .unwrap_or(0);
+    let body = text
+        .split_once("\r\n\r\n")
+        .map_or("", |(_, b)| b)
+        .to_string();
+    (code, body)
+}
+
+/// The value of the sample `name{labels}` (labels as written, "" for none) in Prometheus text.
+fn sample(text: &str, name_and_labels: &str) -> Option<f64> {
+    text.lines().filter(|l| !l.starts_with('#')).find_map(|l| {
+        let (k, v) = l.rsplit_once(' ')?;
+        (k == name_and_labels).then(|| v.parse().ok())?
+    })
+}
+
+fn wait_for(limit: Duration, what: &str, mut ok: impl FnMut() -> bool) {
+    let started = Instant::now();
+    while !ok() {
+        assert!(started.elapsed() < limit, "waited {limit:?} for {what}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// Writes a Y4M stream of a moving bar into `pipe`: `first` frames, then waits for a message
+/// on `resume`, then `second` frames, then waits for another message and closes it.
+fn feed(pipe: PathBuf, first: usize, second: usize, resume: std::sync::mpsc::Receiver<()>) {
+    let (w, h) = (160usize, 120usize);
+    let mut f = std::fs::OpenOptions::new().write(true).open(pipe).unwrap();
+    f.write_all(format!("YUV4MPEG2 W{w} H{h} F30:1 Cmono\n").as_bytes())
+        .unwrap();
+    let frame = |k: usize| {
+        let mut v = b"FRAME\n".to_vec();
+        v.extend((0..w * h).map(|p| if (p % w + 4 * k) % 80 < 20 { 220u8 } else { 30 }));
+        v
+    };
+    for k in 0..first {
+        f.write_all(&frame(k)).unwrap();
+    }
+    resume.recv().unwrap();
+    for k in first..first + second {
+        f.write_all(&frame(k)).unwrap();
+    }
+    resume.recv().unwrap();
+}
+
+#[test]
+fn metrics_match_the_report_and_readiness_follows_the_source() {
+    let dir = common::temp_dir("http-metrics");
+    let pipe = dir.join("live.y4m");
+    let c = std::ffi::CString::new(pipe.to_str().unwrap()).unwrap();
+    assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+    // The writer first: opening a pipe waits for the other end, and the daemon opens its
+    // source before it listens.
+    let (tx, rx) = std::sync::mpsc::channel();
+    let writer = std::thread::spawn({
+        let pipe = pipe.clone();
+        move || feed(pipe, 30, 30, rx)
+    });
+    let daemon = Daemon::start(
+        &[
+            "--source",
+            "live.y4m",
+            "--out",
+            "out.csv",
+            "--udp",
+            "127.0.0.1:9",
+            "--queue-policy",
+            "block",
+            "--ready-timeout",
+            "0.5",
+            "--json",
+        ],
+        &dir,
+    );
+    assert_eq!(daemon.get("/healthz").0, 200);
+    let frames = |d: &Daemon| sample(&d.get("/metrics").1, "v2ce_frames_total").unwrap_or(-1.0);
+    // Ready while frames flow (the first ones come in at 30 fps).
+    wait_for(Duration::from_secs(20), "/readyz 200", || {
+        daemon.get("/readyz").0 == 200
+    });
+    wait_for(Duration::from_secs(20), "30 frames", || {
+        frames(&daemon) == 30.0
+    });
+    // The pipe stalls: unready after the timeout, with the reason.
+    wait_for(Duration::from_secs(10), "/readyz 503", || {
+        daemon.get("/readyz").0 == 503
+    });
+    let (_, why) = daemon.get("/readyz");
+    assert!(why.contains("stalled"), "{why}");
+    assert_eq!(sample(&daemon.get("/metrics").1, "v2ce_ready"), Some(0.0));
+    // Frames again: ready again.
+    tx.send(()).unwrap();
+    wait_for(Duration::from_secs(20), "/readyz 200 again", || {
+        daemon.get("/readyz").0 == 200
+    });
+    wait_for(Duration::from_secs(20), "60 frames", || {
+        frames(&daemon) == 60.0
+    });
+    // Settled: every frame through and the counters still.
+    let mut last = String::new();
+    wait_for(Duration::from_secs(20), "the counters to settle", || {
+        let text = daemon.get("/metrics").1;
+        let settled = sample(&text, "v2ce_frames_processed_total") == Some(60.0)
+            && stable(&text) == stable(&last);
+        last = text;
+        settled
+    });
+    let scraped = last;
+    std::fs::write(dir.join("metrics.txt"), &scraped).unwrap();
+    // The end of the stream: the daemon finishes and reports.
+    tx.send(()).unwrap();
+    writer.join().unwrap();
+    let mut daemon = daemon;
+    let status = daemon.child.wait().unwrap();
+    let mut stdout = String::new();
+    daemon
+        .child
+        .stdout
+        .take()
+        .unwrap()
+        .read_to_string(&mut stdout)
+        .unwrap();
+    assert!(
+        status.success(),
+        "{:?}",
+        daemon.lines.lock().unwrap().join("\n")
+    );
+    let report: serde_json::Value = serde_json::from_str(&stdout).unwrap();
+    let stats = &report["stats"];
+    assert_eq!(stats["frames_in"], 60);
+    assert_eq!(
+        sample(&scraped, "v2ce_frames_total"),
+        stats["frames_in"].as_f64()
+    );
+    assert_eq!(
+        sample(&scraped, "v2ce_events_total"),
+        stats["events_out"].as_f64()
+    );
+    let sinks = stats["sinks"].as_array().unwrap();
+    assert!(sinks.len() >= 3, "udp, file and the preview: {sinks:?}");
+    for s in sinks {
+        let name = s["sink"].as_str().unwrap().replace('"', "\\\"");
+        for (result, key) in [("sent", "events_sent"), ("dropped", "events_dropped")] {
+            assert_eq!(
+                sample(
+                    &scraped,
+                    &format!("v2ce_sink_events_total{{sink=\"{name}\",result=\"{result}\"}}")
+                ),
+                s["stats"][key].as_f64(),
+                "{name} {result}"
+            );
+        }
+    }
+    // The text parses with prometheus_client's parser, with the families and types expected.
+    let Some(py) = common::python() else {
+        eprintln!("SKIPPED the prometheus_client parse: no Python venv (run .ci/run)");
+        return;
+    };
+    let out = Command::new(py)
+        .arg(common::script())
+        .arg("prom")
+        .arg(dir.join("metrics.txt"))
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let samples: Vec<serde_json::Value> = String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let family = |name: &str| samples.iter().find(|s| s["family"] == name).cloned();
+    let frames = family("v2ce_frames").expect("v2ce_frames_total");
+    assert_eq!(frames["type"], "counter");
+    assert_eq!(frames["value"], 60.0);
+    assert_eq!(family("v2ce_latency_seconds").unwrap()["type"], "histogram");
+    assert_eq!(
+        family("process_resident_memory_bytes").unwrap()["type"],
+        "gauge"
+    );
+    let info = family("v2ce_stage1_info").unwrap();
+    assert_eq!(info["labels"]["tier"], "physics");
+}
+
+/// The scrape without the lines that change by themselves (uptime, CPU, memory, readiness),
+/// so two scrapes compare equal when nothing else moved.
+fn stable(text: &str) -> String {
+    text.lines()
+        .filter(|l| {
+            !["v2ce_uptime_seconds", "process_", "v2ce_ready"]
+                .iter()
+                .any(|p| l.starts_with(p))
+        })
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+/// Headless Chromium (the Debian package), or `None` with a printed reason, unless
+/// `V2CE_REQUIRE_CHROMIUM` is set (CI), where its absence fails.
+fn chromium() -> Option<PathBuf> {
+    let found = ["chromium", "chromium-browser", "google-chrome"]
+        .iter()
+        .flat_map(|n| ["/usr/bin", "/usr/local/bin"].map(|d| Path::new(d).join(n)))
+        .find(|p| p.is_file());
+    if found.is_none() {
+        assert!(
+            std::env::var_os("V2CE_REQUIRE_CHROMIUM").is_none(),
+            "V2CE_REQUIRE_CHROMIUM is set but there is no chromium (apt install chromium)"
+        );
+    }
+    found
+}
+
+fn screenshot(browser: &Path, url: &str, out: &Path, profile: &Path) {
+    let o = Command::new(browser)
+        .args([
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--hide-scrollbars",
+            "--no-first-run",
+            "--window-size=800,700",
+        ])
+        .arg(format!("--user-data-dir={}", profile.display()))
+        .arg(format!("--screenshot={}", out.display()))
+        .arg(url)
+        .output()
+        .unwrap();
+    assert!(
+        out.exists(),
+        "no screenshot: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+}
+
+/// Pixels of the screenshot in the ON and OFF colours, and where they lie (bounding box).
+fn event_pixels(path: &Path) -> (usize, usize, image::RgbImage) {
+    let img = image::open(path).unwrap().to_rgb8();
+    let near = |p: &image::Rgb<u8>, c: [u8; 3]| {
+        p.0.iter()
+            .zip(c)
+            .all(|(a, b)| (*a as i16 - b as i16).abs() <= 12)
+    };
+    let on = img
+        .pixels()
+        .filter(|p| near(p, v2ce::render::ON_COLOUR))
+        .count();
+    let off = img
+        .pixels()
+        .filter(|p| near(p, v2ce::render::OFF_COLOUR))
+        .count();
+    (on, off, img)
+}
+
+#[test]
+fn the_preview_page_shows_the_moving_fixture_in_a_browser() {
+    let Some(browser) = chromium() else {
+        eprintln!(
+            "SKIPPED the_preview_page_shows_the_moving_fixture_in_a_browser: no chromium (apt install chromium)"
+        );
+        return;
+    };
+    let dir = common::temp_dir("http-page");
+    let daemon = Daemon::start(
+        &["--source", "fixture", "--loop", "--udp", "127.0.0.1:9"],
+        &dir,
+    );
+    wait_for(Duration::from_secs(30), "frames flowing", || {
+        daemon.get("/readyz").0 == 200
+    });
+    // A second into the fixture: the bar sweeps.
+    std::thread::sleep(Duration::from_secs(1));
+    let (code, page) = daemon.get("/");
+    assert_eq!(code, 200);
+    assert!(
+        !page.contains("http://") && !page.contains("https://"),
+        "external assets"
+    );
+    let keep = Path::new(env!("CARGO_MANIFEST_DIR")).join("target/test-output");
+    std::fs::create_dir_all(&keep).unwrap();
+    let url = format!("http://{}/?window_ms=100", daemon.address);
+    let shots = [keep.join("preview-1.png"), keep.join("preview-2.png")];
+    screenshot(&browser, &url, &shots[0], &dir.join("profile1"));
+    std::thread::sleep(Duration::from_millis(1500));
+    screenshot(&browser, &url, &shots[1], &dir.join("profile2"));
+    let (on1, off1, img1) = event_pixels(&shots[0]);
+    let (on2, off2, img2) = event_pixels(&shots[1]);
+    eprintln!(
+        "screenshots in {}: ON/OFF pixels {on1}/{off1} and {on2}/{off2}",
+        keep.display()
+    );
+    // Events of both polarities where the fixture moves, and the page changed between loads.
+    assert!(on1 > 100 && off1 > 100, "{on1} ON, {off1} OFF pixels");
+    assert!(on2 > 100 && off2 > 100, "{on2} ON, {off2} OFF pixels");
+    let differ = img1
+        .pixels()
+        .zip(img2.pixels())
+        .filter(|(a, b)| a != b)
+        .count();
+    assert!(
+        differ > 100,
+        "the two screenshots differ in {differ} pixels"
+    );
+
+    // The push channel itself: server-sent events, each a new frame, several a second.
+    let mut s = std::net::TcpStream::connect(&daemon.address).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    write!(s, "GET /events?window_ms=33 HTTP/1.0\r\n\r\n").unwrap();
+    let mut reader = std::io::BufReader::new(s);
+    let started = Instant::now();
+    let mut messages: Vec<serde_json::Value> = Vec::new();
+    while messages.len() < 4 {
+        let mut line = String::new();
+        assert!(reader.read_line(&mut line).unwrap() > 0, "the stream ended");
+        if let Some(data) = line.strip_prefix("data: ") {
+            messages.push(serde_json::from_str(data.trim()).unwrap());
+        }
+    }
+    let seconds = started.elapsed().as_secs_f64();
+    assert!(seconds < 3.0, "4 pushes took {seconds:.1} s");
+    let frames: Vec<u64> = messages
+        .iter()
+        .map(|m| m["frames"].as_u64().unwrap())
+        .collect();
+    assert!(frames[3] > frames[0], "{frames:?}");
+    assert_ne!(messages[0]["png"], messages[3]["png"]);
+    assert_eq!(messages[0]["width"], 640);
+}
