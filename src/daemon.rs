@@ -496,9 +496,12 @@ pub fn bench(
     config.run.duration = seconds;
     config.run.udp = address;
     config.run.udp_format = crate::format::datagram::UdpFormat::SpifTimestamped;
+    // The HTTP listener, to measure what it and a preview page cost.
+    config.run.http = base.run.http.clone();
     let (source, what) = open_source(&config)?;
     let stage1 = crate::convert::build_stage1(&config, source.first.as_ref())?;
-    let sinks = open_sinks(&config, size.0, size.1, speed)?;
+    let mut sinks = open_sinks(&config, size.0, size.1, speed)?;
+    let http = start_http(&config, &what, stage1.as_ref(), &mut sinks)?;
     let stages = Stages {
         stage1,
         sampler: config.stage2.sampler.build(config.stage2.seed),
@@ -511,7 +514,13 @@ pub fn bench(
         tracing::info!("{}", s.line());
         rss.push(s.rss_kib);
     };
-    let report = pipeline::run(source, stages, &options(&config.run), stop, &mut on_tick);
+    let mut pipeline_options = options(&config.run);
+    pipeline_options.counters = http.as_ref().map(|(_, status)| status.counters.clone());
+    if let Some((_, status)) = &http {
+        status.running.store(true, Ordering::Relaxed);
+    }
+    let report = pipeline::run(source, stages, &pipeline_options, stop, &mut on_tick);
+    drop(http);
     // Let the last datagrams land, then stop the receiver.
     std::thread::sleep(Duration::from_millis(200));
     done.store(true, Ordering::Relaxed);

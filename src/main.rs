@@ -539,6 +539,10 @@ struct BenchArgs {
     /// time).
     #[arg(long, default_value_t = 1.0)]
     replay_speed: f64,
+    /// Run the HTTP listener on IP:PORT during the bench (to measure what it, a scraper and an
+    /// open preview page cost)
+    #[arg(long, value_name = "IP:PORT")]
+    http: Option<String>,
     /// TOML configuration for Stage 1 and Stage 2 (the flags below override it).
     #[arg(long)]
     config: Option<PathBuf>,
@@ -995,6 +999,10 @@ fn bench(args: BenchArgs) -> Result<()> {
         None => Config::default(),
     };
     args.tier.apply(&mut config)?;
+    if let Some(h) = &args.http {
+        config.run.http = h.clone();
+        config.run.validate()?;
+    }
     for size in &args.sizes {
         let result = v2ce::daemon::bench(
             parse_size(size)?,

@@ -745,8 +745,10 @@ fn sink_stage(
                 continue;
             }
         }
-        ctx.counters.record(Timing::Emission, received.elapsed());
-        ctx.counters.record_latency(batch.at.elapsed());
+        if sink.counts_latency() {
+            ctx.counters.record(Timing::Emission, received.elapsed());
+            ctx.counters.record_latency(batch.at.elapsed());
+        }
         ctx.counters.update_sink(index, sink.stats(), None);
     }
     if failed.is_none() {

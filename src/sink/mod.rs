@@ -140,4 +140,10 @@ pub trait Sink: Send {
 
     /// The counters so far.
     fn stats(&self) -> SinkStats;
+
+    /// Whether its deliveries count in the pipeline's latency figures (`false` for the preview
+    /// tap, which only copies events for the HTTP page and would pull the median down).
+    fn counts_latency(&self) -> bool {
+        true
+    }
 }

@@ -106,6 +106,10 @@ impl Sink for PreviewSink {
     fn stats(&self) -> SinkStats {
         self.stats
     }
+
+    fn counts_latency(&self) -> bool {
+        false
+    }
 }
 
 #[cfg(test)]
