@@ -19,7 +19,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use crate::error::{Error, Result};
-use crate::pipeline::stats::{Counters, Timing};
+use crate::pipeline::stats::{Counters, QueueSnapshot, SinkSnapshot, Timing};
 use crate::sink::preview::PreviewBuffer;
 
 /// Server-sent event streams served at once; more get 503.
@@ -148,103 +148,65 @@ pub fn metrics(status: &Status) -> String {
             st.events_sent, st.events_dropped, st.events_refused
         );
     }
-    head(
-        &mut out,
-        "v2ce_sink_late_events_total",
-        "counter",
-        "Events sent after their due time (emission at event time).",
-    );
-    for k in &s.sinks {
-        let _ = writeln!(
-            out,
-            "v2ce_sink_late_events_total{{sink=\"{}\"}} {}",
-            label(&k.sink),
-            k.stats.events_late
-        );
+    type SinkValue = fn(&SinkSnapshot) -> u64;
+    let per_sink: [(&str, &str, &str, SinkValue); 4] = [
+        (
+            "v2ce_sink_late_events_total",
+            "counter",
+            "Events sent after their due time (emission at event time).",
+            |k| k.stats.events_late,
+        ),
+        (
+            "v2ce_sink_sent_bytes_total",
+            "counter",
+            "Bytes sent or written per output.",
+            |k| k.stats.bytes_sent,
+        ),
+        (
+            "v2ce_sink_clients",
+            "gauge",
+            "Clients connected (TCP outputs).",
+            |k| k.stats.clients,
+        ),
+        (
+            "v2ce_sink_up",
+            "gauge",
+            "1 while the output works, 0 once it failed.",
+            |k| u64::from(k.failed.is_none()),
+        ),
+    ];
+    for (name, kind, help, value) in per_sink {
+        head(&mut out, name, kind, help);
+        for k in &s.sinks {
+            let _ = writeln!(out, "{name}{{sink=\"{}\"}} {}", label(&k.sink), value(k));
+        }
     }
-    head(
-        &mut out,
-        "v2ce_sink_sent_bytes_total",
-        "counter",
-        "Bytes sent or written per output.",
-    );
-    for k in &s.sinks {
-        let _ = writeln!(
-            out,
-            "v2ce_sink_sent_bytes_total{{sink=\"{}\"}} {}",
-            label(&k.sink),
-            k.stats.bytes_sent
-        );
-    }
-    head(
-        &mut out,
-        "v2ce_sink_clients",
-        "gauge",
-        "Clients connected (TCP outputs).",
-    );
-    for k in &s.sinks {
-        let _ = writeln!(
-            out,
-            "v2ce_sink_clients{{sink=\"{}\"}} {}",
-            label(&k.sink),
-            k.stats.clients
-        );
-    }
-    head(
-        &mut out,
-        "v2ce_sink_up",
-        "gauge",
-        "1 while the output works, 0 once it failed.",
-    );
-    for k in &s.sinks {
-        let _ = writeln!(
-            out,
-            "v2ce_sink_up{{sink=\"{}\"}} {}",
-            label(&k.sink),
-            u8::from(k.failed.is_none())
-        );
-    }
-    head(
-        &mut out,
-        "v2ce_queue_depth",
-        "gauge",
-        "Items waiting in each queue between stages.",
-    );
-    for q in &s.queues {
-        let _ = writeln!(
-            out,
-            "v2ce_queue_depth{{queue=\"{}\"}} {}",
-            label(&q.name),
-            q.depth
-        );
-    }
-    head(
-        &mut out,
-        "v2ce_queue_capacity",
-        "gauge",
-        "Capacity of each queue.",
-    );
-    for q in &s.queues {
-        let _ = writeln!(
-            out,
-            "v2ce_queue_capacity{{queue=\"{}\"}} {}",
-            label(&q.name),
-            q.capacity
-        );
-    }
-    head(
-        &mut out,
-        "v2ce_queue_dropped_events_total",
-        "counter",
-        "Events in items a full queue evicted (drop-oldest).",
-    );
-    for q in &s.queues {
-        let _ = writeln!(
-            out,
-            "v2ce_queue_dropped_events_total{{queue=\"{}\"}} {}",
-            label(&q.name),
-            q.dropped_events
-        );
+    type QueueValue = fn(&QueueSnapshot) -> u64;
+    let per_queue: [(&str, &str, &str, QueueValue); 3] = [
+        (
+            "v2ce_queue_depth",
+            "gauge",
+            "Items waiting in each queue between stages.",
+            |q| q.depth as u64,
+        ),
+        (
+            "v2ce_queue_capacity",
+            "gauge",
+            "Capacity of each queue.",
+            |q| q.capacity as u64,
+        ),
+        (
+            "v2ce_queue_dropped_events_total",
+            "counter",
+            "Events in items a full queue evicted (drop-oldest).",
+            |q| q.dropped_events,
+        ),
+    ];
+    for (name, kind, help, value) in per_queue {
+        head(&mut out, name, kind, help);
+        for q in &s.queues {
+            let _ = writeln!(out, "{name}{{queue=\"{}\"}} {}", label(&q.name), value(q));
+        }
     }
     for (name, timing, help) in [
         (
