@@ -710,9 +710,12 @@ mod tests {
         let (got, stats) = emit_at_event_time(&events, past, Duration::from_millis(20));
         assert_eq!(stats.events_late, 200);
         assert_eq!(stats.reanchors, 0);
+        // Paced, not one burst: the sender sleeps between datagrams, so the spread cannot be
+        // shorter than the schedule's (about 10 ms). How much longer depends on the machine's
+        // load, so only a stall-sized upper bound is checked (a loaded CI once took 19 ms).
         let span = got[got.len() - 1].0 - got[0].0;
         assert!(
-            span >= Duration::from_millis(6) && span < Duration::from_millis(19),
+            span >= Duration::from_millis(6) && span < Duration::from_millis(500),
             "{span:?} for 19.9 ms of events"
         );
         let all: Vec<Event> = got.into_iter().flat_map(|(_, e)| e).collect();
