@@ -84,6 +84,23 @@ fn shards_convert_every_input_once_like_convert_and_report_the_corrupt_one() {
     .unwrap();
     let o = v2ce(&["batch", "list.txt", "--out", "out"], &dir);
     assert!(text(&o).contains("1 converted, 7 skipped"), "{}", text(&o));
+    // A changed input is redone: same size, other content (its time changes too).
+    let clip = dir.join("clips/c1.y4m");
+    let mut bytes = std::fs::read(&clip).unwrap();
+    let last = bytes.len() - 1;
+    bytes[last] ^= 0x55;
+    std::thread::sleep(Duration::from_millis(20));
+    std::fs::write(&clip, bytes).unwrap();
+    let o = v2ce(&["batch", "list.txt", "--out", "out"], &dir);
+    assert!(text(&o).contains("1 converted, 7 skipped"), "{}", text(&o));
+    let records = ledger(&dir, "out");
+    assert_eq!(
+        records
+            .iter()
+            .filter(|(o, s)| o == "clips/c1.aedat4" && s == "done")
+            .count(),
+        2
+    );
 }
 
 #[test]
