@@ -837,11 +837,8 @@ fn do_item(
             Ok(Outcome::Converted(record))
         }
         Err(Error::Interrupted(_)) => Ok(Outcome::Interrupted),
-        Err(e) if stop.load(Ordering::Relaxed) => {
-            // Stopped while failing: not the input's fault for sure; redone next time.
-            let _ = e;
-            Ok(Outcome::Interrupted)
-        }
+        // Stopped while failing: not surely the input's fault; redone next time.
+        Err(_) if stop.load(Ordering::Relaxed) => Ok(Outcome::Interrupted),
         Err(e) => fail(record, e),
     }
 }

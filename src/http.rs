@@ -61,14 +61,10 @@ impl Status {
             }
             Some(_) => {}
         }
-        let snapshot = self.counters.peek();
-        if let Some(s) = snapshot.sinks.iter().find(|s| s.failed.is_some()) {
-            return Err(format!(
-                "output down: {}",
-                s.failed.as_deref().unwrap_or(&s.sink)
-            ));
+        match self.counters.failed_sink() {
+            Some(failure) => Err(format!("output down: {failure}")),
+            None => Ok(()),
         }
-        Ok(())
     }
 }
 

@@ -376,6 +376,11 @@ impl Counters {
         }
     }
 
+    /// The first failed sink's failure, if any (without building a whole snapshot).
+    pub fn failed_sink(&self) -> Option<String> {
+        lock(&self.sinks).iter().find_map(|s| s.failed.clone())
+    }
+
     /// Records one capture-to-send latency.
     pub fn record_latency(&self, latency: Duration) {
         self.record(Timing::Latency, latency);
