@@ -9,6 +9,7 @@
 pub mod batch;
 pub mod calibrate;
 pub mod capture;
+pub mod cli;
 pub mod config;
 pub mod convert;
 pub mod daemon;

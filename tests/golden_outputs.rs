@@ -246,6 +246,18 @@ fn read_table() -> BTreeMap<String, String> {
         .collect()
 }
 
+/// Writes the table (blessing).
+fn write_table(table: &BTreeMap<String, String>) {
+    let mut text = String::from(
+        "# sha256 of each output of tests/golden_outputs.rs, as written when blessed\n",
+    );
+    for (name, hash) in table {
+        text.push_str(&format!("{name}\t{hash}\n"));
+    }
+    std::fs::write(table_path(), text).unwrap();
+    eprintln!("blessed {} rows", table.len());
+}
+
 /// The bundled fixture video, decompressed to `dir/walkby.y4m`.
 fn fixture_video(dir: &Path) -> PathBuf {
     let packed = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/walkby.y4m.zst");
@@ -323,21 +335,76 @@ fn outputs_are_byte_identical_to_the_golden_table() {
         got.insert(case.name.to_string(), hash);
     }
     if bless {
-        let mut table = expected.clone();
+        // The other test blesses its rows at the same time: read the table again.
+        let mut table = read_table();
         table.extend(got);
-        let mut text = String::from(
-            "# sha256 of each output of tests/golden_outputs.rs, as written when blessed\n",
-        );
-        for (name, hash) in &table {
-            text.push_str(&format!("{name}\t{hash}\n"));
-        }
-        std::fs::write(table_path(), text).unwrap();
-        eprintln!("blessed {} outputs", table.len());
+        write_table(&table);
         return;
     }
     assert!(
         mismatches.is_empty(),
         "outputs changed:\n{}",
+        mismatches.join("\n")
+    );
+}
+
+/// Every command's `--help`, the interface its flags form: held to the table as the outputs are.
+#[test]
+fn help_texts_are_unchanged() {
+    const COMMANDS: &[&str] = &[
+        "",
+        "run",
+        "devices",
+        "bench",
+        "bench tradeoff",
+        "convert",
+        "transcode",
+        "info",
+        "eval",
+        "eval stage1",
+        "eval stage2",
+        "listen",
+        "render",
+        "model",
+        "model import",
+        "model run",
+        "model bench",
+        "calibrate",
+        "dataset",
+        "dataset synthetic",
+        "dataset recording",
+        "batch",
+    ];
+    let bless = std::env::var_os("V2CE_BLESS_GOLDEN").is_some();
+    let mut table = read_table();
+    let mut mismatches = Vec::new();
+    for command in COMMANDS {
+        let out = Command::new(env!("CARGO_BIN_EXE_v2ce"))
+            .args(command.split_whitespace())
+            .arg("--help")
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "v2ce {command} --help failed");
+        let hash: String = Sha256::digest(&out.stdout)
+            .iter()
+            .map(|b| format!("{b:02x}"))
+            .collect();
+        let name = format!("help {command}").trim_end().replace(' ', "-");
+        match table.get(&name) {
+            Some(h) if *h == hash => {}
+            _ if bless => {}
+            Some(h) => mismatches.push(format!("{name}: expected {h}, got {hash}")),
+            None => mismatches.push(format!("{name}: not in the table")),
+        }
+        table.insert(name, hash);
+    }
+    if bless {
+        write_table(&table);
+        return;
+    }
+    assert!(
+        mismatches.is_empty(),
+        "help texts changed:\n{}",
         mismatches.join("\n")
     );
 }

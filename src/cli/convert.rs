@@ -1,0 +1,188 @@
+//! `v2ce convert`: frames to an event file.
+
+use std::path::PathBuf;
+
+use clap::Args;
+
+use super::*;
+use crate::config::{parse_size, Config};
+use crate::error::Result;
+use crate::stage2::SamplerKind;
+
+/// The flags of `v2ce convert`.
+#[derive(Args)]
+pub struct ConvertArgs {
+    /// Frames: a video file (through ffmpeg), a folder of PNG/JPEG images, a .y4m, or an
+    /// .aedat4 with APS frames.
+    pub input: PathBuf,
+    /// Output events; the extension picks the format: .aedat4, .raw, .csv, .npz, .h5/.hdf5.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// TOML configuration file (flags override it).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// The Stage 1 tier and its settings.
+    #[command(flatten)]
+    pub tier: TierArgs,
+    /// Also write the voxels Stage 1 hands to Stage 2, as float32 (intervals, 2*C, H, W)
+    /// (channel = polarity*C + node, ON first); needs a tier that makes voxels.
+    #[arg(long, value_name = "V.npy")]
+    pub write_voxels: Option<PathBuf>,
+    /// Sensor preset: davis346, dvxplorer, ideal [config default: davis346].
+    #[arg(long)]
+    pub preset: Option<String>,
+    /// A preset file (as `v2ce calibrate` writes) instead of --preset [config default: "",
+    /// none].
+    #[arg(long, conflicts_with = "preset")]
+    pub preset_file: Option<PathBuf>,
+    /// Stage 1 output: events (direct) or voxels (re-timed by the Stage 2 sampler) [config
+    /// default: events].
+    #[arg(long, value_parser = ["events", "voxels"])]
+    pub mode: Option<String>,
+    /// Stage 2 sampler for --mode voxels: moment, ldati, ldati-random, even, random [config
+    /// default: moment].
+    #[arg(long)]
+    pub sampler: Option<SamplerKind>,
+    /// Seed of mismatch, noise and sampling [config default: 0].
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Frame rate of an image folder without images.txt/times.txt (none: the folder must have
+    /// one).
+    #[arg(long)]
+    pub fps: Option<f64>,
+    /// How image values relate to the light: auto (linear for a recognised DAVIS APS export,
+    /// else sRGB, warning for gray images), srgb (camera video, photos) or linear (raw sensor
+    /// exports).
+    #[arg(long, value_enum, default_value_t = crate::frame::images::ColorSpace::Auto)]
+    pub color: crate::frame::images::ColorSpace,
+    /// The same as --color linear.
+    #[arg(long, conflicts_with = "color")]
+    pub linear: bool,
+    /// How the output is encoded (`--evt`, `--compression`).
+    #[command(flatten)]
+    pub encoding: EncodingArgs,
+    /// Resample frames to WIDTHxHEIGHT (none: the source's size).
+    #[arg(long, value_name = "WxH")]
+    pub size: Option<String>,
+    /// Stop after this many frames (0 or none: all, as for `run`).
+    #[arg(long)]
+    pub max_frames: Option<u64>,
+    /// Overwrite an existing output file.
+    #[arg(long)]
+    pub force: bool,
+}
+
+/// Runs `v2ce convert`: frames in, an event file out, with a start line and progress.
+pub fn convert(args: ConvertArgs) -> Result<()> {
+    use crate::stage1::{Preset, Stage1Output};
+    use std::io::IsTerminal;
+    let mut config = match &args.config {
+        Some(path) => Config::load(path)?,
+        None => Config::default(),
+    };
+    if let Some(p) = &args.preset {
+        config.stage1.preset = Preset::from_name(p)?;
+        config.stage1.custom = None;
+    }
+    if let Some(f) = &args.preset_file {
+        config.stage1.load_preset_file(f)?;
+    }
+    match args.mode.as_deref() {
+        Some("voxels") => config.stage1.output = Stage1Output::Voxels,
+        Some(_) => config.stage1.output = Stage1Output::Events,
+        None => {}
+    }
+    if let Some(s) = args.sampler {
+        config.stage2.sampler = s;
+    }
+    if let Some(s) = args.seed {
+        config.stage1.seed = s;
+        config.stage2.seed = s;
+    }
+    args.tier.apply(&mut config)?;
+    check_output(&args.output, args.force)?;
+    if let Some(v) = &args.write_voxels {
+        check_output(v, args.force)?;
+    }
+    let job = crate::convert::FileJob {
+        input: args.input.clone(),
+        output: args.output.clone(),
+        format: args.encoding.format_for(&args.output)?,
+        source: crate::frame::SourceOptions {
+            fps: args.fps,
+            color: if args.linear {
+                crate::frame::images::ColorSpace::Linear
+            } else {
+                args.color
+            },
+        },
+        size: args.size.as_deref().map(parse_size).transpose()?,
+        // 0 means no limit, as in `run` and `[run] max_frames`.
+        max_frames: args.max_frames.filter(|&m| m > 0),
+        write_voxels: args.write_voxels.clone(),
+    };
+    /// Prints the start line, and progress on a terminal.
+    struct Terminal {
+        tty: bool,
+        total: Option<u64>,
+    }
+    impl crate::convert::FileJobObserver for Terminal {
+        fn started(&mut self, line: &str, frames: Option<u64>) {
+            eprintln!("v2ce: {line}");
+            self.total = frames;
+        }
+        fn progress(&mut self, r: &crate::convert::ConvertReport) {
+            if self.tty {
+                eprint!(
+                    "\r  {}",
+                    progress_line(r.frames, self.total, r.events, r.seconds)
+                );
+            }
+        }
+    }
+    let tty = std::io::stderr().is_terminal();
+    let stop = crate::daemon::stop_on_signals()?;
+    let mut terminal = Terminal { tty, total: None };
+    let result = crate::convert::convert_file(&job, &config, &stop, &mut terminal);
+    if tty {
+        eprintln!();
+    }
+    let report = result?;
+    let s1 = &report.stage1;
+    let detail = match s1.tier {
+        "learned" => format!(
+            "{} windows of L={} (stride {}, {} skipped as still), median {:.0} ms per window on \
+             {}, the network ran on {:.0}% of the pixels",
+            s1.learned.windows,
+            s1.window,
+            s1.stride,
+            s1.learned.windows_skipped,
+            s1.learned.window_ms_p50,
+            s1.learned.provider,
+            100.0 * s1.learned.compute()
+        ),
+        _ => format!(
+            "{} of {} tiles skipped as static",
+            s1.physics.tiles_skipped,
+            s1.physics.tiles_skipped + s1.physics.tiles_active
+        ),
+    };
+    eprintln!(
+        "v2ce: {} frames, {} events in {:.2} s ({:.1} frames/s); {detail}",
+        report.frames,
+        report.events,
+        report.seconds,
+        report.frames as f64 / report.seconds.max(1e-9),
+    );
+    if s1.learned.nonfinite > 0 || report.repaired.any() {
+        eprintln!(
+            "v2ce: warning: the model gave {} NaN/infinite values; Stage 2 repaired {} \
+             non-finite, {} negative, {} clamped node values",
+            s1.learned.nonfinite,
+            report.repaired.nonfinite,
+            report.repaired.negative,
+            report.repaired.clamped
+        );
+    }
+    Ok(())
+}

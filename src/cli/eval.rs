@@ -1,0 +1,355 @@
+//! `v2ce eval stage1` and `v2ce eval stage2`: scores against real recordings.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use clap::{Args, Subcommand};
+
+use crate::config::Config;
+use crate::error::{Error, Result};
+use crate::format::{self, csv, Recording};
+use crate::interval::{fixed_intervals, intervals_from_frames, Interval};
+use crate::stage2::SamplerKind;
+
+/// The `v2ce eval` subcommands.
+#[derive(Subcommand)]
+pub enum Eval {
+    /// Stage 2: voxelize real events per frame interval, re-sample them, and score the
+    /// timestamps (METE, NOE, PGER, C-METE, C-NOE). Without --events, runs on a built-in
+    /// synthetic recording.
+    Stage2(Stage2Args),
+    /// Stage 1: voxelize a simulated and a real event stream on the real recording's frame
+    /// intervals and score them (TPF1, TF1, RF1, accuracies, PMSE-2/4), plus the Stage 2
+    /// timestamp metrics between the two.
+    Stage1(Stage1Args),
+}
+
+/// The flags of `v2ce eval stage1`.
+#[derive(Args)]
+pub struct Stage1Args {
+    /// The real events (and, for an .aedat4 with APS frames, the frame intervals).
+    #[arg(long)]
+    pub real: PathBuf,
+    /// The simulated events; without it, the physics tier simulates them here from the
+    /// recording's APS frames (or the --frames images) with --preset / --preset-file.
+    #[arg(long)]
+    pub sim: Option<PathBuf>,
+    /// Frame times (an .aedat4 with APS frames or an IJRR images.txt) when --real has none.
+    #[arg(long, conflicts_with = "fps")]
+    pub frames: Option<PathBuf>,
+    /// Fixed frame rate for the intervals instead.
+    #[arg(long)]
+    pub fps: Option<f64>,
+    /// Without --sim: the sensor preset to simulate with (davis346, dvxplorer, ideal).
+    #[arg(long, default_value = "davis346", conflicts_with = "sim")]
+    pub preset: String,
+    /// Without --sim: a preset file (as `v2ce calibrate` writes) instead of --preset.
+    #[arg(long, conflicts_with = "sim")]
+    pub preset_file: Option<PathBuf>,
+    /// Without --sim: the seed of mismatch and noise.
+    #[arg(long, default_value_t = 0, conflicts_with = "sim")]
+    pub seed: u64,
+    /// Score only these frame intervals: first (half, by time), second, all (as `v2ce dataset
+    /// recording --split`, so a model is scored on the half it did not train on).
+    #[arg(long, value_enum, default_value_t = crate::dataset::Split::All)]
+    pub split: crate::dataset::Split,
+    /// Print the scores as one JSON object.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// The flags of `v2ce eval stage2`.
+#[derive(Args)]
+pub struct Stage2Args {
+    /// Real events: .aedat4, IJRR events.txt, or .csv (t_us,x,y,on).
+    #[arg(long)]
+    pub events: Option<PathBuf>,
+    /// Frame times: an .aedat4 with APS frames or an IJRR images.txt.
+    #[arg(long, conflicts_with = "fps")]
+    pub frames: Option<PathBuf>,
+    /// Fixed frame rate for the intervals, starting at the first event.
+    #[arg(long)]
+    pub fps: Option<f64>,
+    /// Sampler: moment (default), ldati, ldati-random, even, random.
+    #[arg(long)]
+    pub sampler: Option<SamplerKind>,
+    /// Seed of the sampler's random draws.
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Temporal nodes per interval (C).
+    #[arg(long)]
+    pub bins: Option<usize>,
+    /// TOML configuration file (flags override it).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Write the sampled events as CSV (t_us,x,y,on).
+    #[arg(long, value_name = "OUT.csv")]
+    pub write_events: Option<PathBuf>,
+    /// Print the scores as one JSON object.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Runs `v2ce eval stage1`.
+pub fn eval_stage1(args: Stage1Args) -> Result<()> {
+    let (real, intervals) =
+        load_events_and_intervals(&args.real, args.frames.as_deref(), args.fps)?;
+    let intervals = intervals[args.split.range(intervals.len())].to_vec();
+    if intervals.is_empty() {
+        return Err(Error::invalid(
+            "--split",
+            format!("no frame intervals in the {:?} part", args.split),
+        ));
+    }
+    let sim = match &args.sim {
+        Some(path) => format::read_events(path)?,
+        None => simulate_for_eval(&args, (real.width, real.height))?,
+    };
+    let sim_name = args
+        .sim
+        .clone()
+        .unwrap_or_else(|| PathBuf::from("the simulated events"));
+    if let Some(e) = sim
+        .events
+        .events()
+        .iter()
+        .find(|e| e.x >= real.width || e.y >= real.height)
+    {
+        return Err(Error::format(
+            &sim_name,
+            format!(
+                "event at ({}, {}) outside the real {} x {} sensor",
+                e.x, e.y, real.width, real.height
+            ),
+        ));
+    }
+    let m = crate::metrics::stage1::score(
+        real.events.events(),
+        sim.events.events(),
+        &intervals,
+        real.width,
+        real.height,
+        crate::voxel::DEFAULT_BINS,
+    )?;
+    let mut scorer = crate::metrics::Stage2Scorer::new();
+    for iv in &intervals {
+        scorer.add_interval(
+            *iv,
+            real.events.time_slice(iv.start(), iv.end()),
+            sim.events.time_slice(iv.start(), iv.end()),
+        );
+    }
+    let t = scorer.finish();
+    let mut out = std::io::stdout().lock();
+    let text = if args.json {
+        let mut v = serde_json::to_value(m).map_err(|e| Error::invalid("json", e.to_string()))?;
+        v["count_ratio"] = m.count_ratio().into();
+        v["c_mete_us"] = t.c_mete_us.into();
+        v["mete_us"] = t.mete_us.into();
+        v["pger"] = t.pger.into();
+        v.to_string()
+    } else {
+        format!(
+            "intervals {} ({} chunks); real events {}, simulated {} (ratio {:.3})\n\
+             TPF1 {:.4}  TF1 {:.4}  RF1 {:.4}\n\
+             TPAcc {:.4}  TAcc {:.4}  RAcc {:.4}\n\
+             PMSE-2 {:.5}  PMSE-4 {:.5}\n\
+             C-METE {:.1} us  METE {:.1} us  PGER {:.3}",
+            m.intervals,
+            m.chunks,
+            m.real_events,
+            m.sim_events,
+            m.count_ratio(),
+            m.tpf1,
+            m.tf1,
+            m.rf1,
+            m.tpacc,
+            m.tacc,
+            m.racc,
+            m.pmse2,
+            m.pmse4,
+            t.c_mete_us,
+            t.mete_us,
+            t.pger
+        )
+    };
+    writeln!(out, "{text}").map_err(|e| Error::io("stdout", e))
+}
+
+/// Runs `v2ce eval stage2`.
+pub fn eval_stage2(args: Stage2Args) -> Result<()> {
+    let mut config = match &args.config {
+        Some(path) => Config::load(path)?,
+        None => Config::default(),
+    };
+    if let Some(s) = args.sampler {
+        config.stage2.sampler = s;
+    }
+    if let Some(s) = args.seed {
+        config.stage2.seed = s;
+    }
+    if let Some(b) = args.bins {
+        config.stage2.bins = b;
+    }
+    let (recording, intervals) = load_stage2_input(&args)?;
+    let sampler = config.stage2.sampler.build(config.stage2.seed);
+    let mut writer = match &args.write_events {
+        Some(path) => {
+            let file = std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
+            let mut w = std::io::BufWriter::new(file);
+            writeln!(w, "{}", csv::HEADER).map_err(|e| Error::io(path, e))?;
+            Some((path.clone(), w))
+        }
+        None => None,
+    };
+    let report = crate::eval::stage2(
+        &recording,
+        &intervals,
+        config.stage2.bins,
+        sampler.as_ref(),
+        |events| {
+            if let Some((path, w)) = writer.as_mut() {
+                csv::write_rows(w, events).map_err(|err| Error::io(path.clone(), err))?;
+            }
+            Ok(())
+        },
+    )?;
+    if let Some((path, mut w)) = writer {
+        w.flush().map_err(|e| Error::io(path, e))?;
+    }
+    if report.repaired.any() {
+        eprintln!(
+            "v2ce: warning: repaired voxel values: {} non-finite, {} negative, {} clamped",
+            report.repaired.nonfinite, report.repaired.negative, report.repaired.clamped
+        );
+    }
+    if args.json {
+        let text =
+            serde_json::to_string(&report).map_err(|e| Error::invalid("report", e.to_string()))?;
+        println!("{text}");
+    } else {
+        let m = &report.metrics;
+        println!("sampler            {}", report.sampler);
+        println!(
+            "intervals          {} ({} with events)",
+            m.intervals, m.intervals_scored
+        );
+        println!("events in / out    {} / {}", m.events_in, m.events_out);
+        println!("METE               {:.1} us", m.mete_us);
+        println!("NOE                {:.3}", m.noe);
+        println!("PGER               {:.6}", m.pger);
+        println!("C-METE             {:.1} us", m.c_mete_us);
+        println!("C-NOE              {:.3}", m.c_noe);
+        println!(
+            "time per interval  {:.1} us voxelize, {:.1} us sample (median)",
+            report.voxelize_us_median, report.sample_us_median
+        );
+    }
+    Ok(())
+}
+
+/// The recording and its intervals, from the arguments or the built-in synthetic scene.
+pub fn load_stage2_input(args: &Stage2Args) -> Result<(Recording, Vec<Interval>)> {
+    let Some(events_path) = &args.events else {
+        let fps = args.fps.unwrap_or(30.0);
+        eprintln!(
+            "v2ce: no --events given: using the built-in synthetic recording \
+             (a sweeping bar, 128 x 96, 2 s, frames at {fps} fps)"
+        );
+        let intervals = fixed_intervals(0, 1_999_999, fps)?;
+        let recording = crate::synthetic::sweeping_bar(128, 96, 2_000_000, 1);
+        return Ok((recording, intervals));
+    };
+    load_events_and_intervals(events_path, args.frames.as_deref(), args.fps)
+}
+
+/// `eval stage1` without `--sim`: the physics tier's events for the recording's own frames
+/// (its APS frames, or `--frames` when that is a frame source) with the chosen preset.
+pub fn simulate_for_eval(args: &Stage1Args, size: (u16, u16)) -> Result<Recording> {
+    let mut stage1 = crate::stage1::Stage1Config::default();
+    match &args.preset_file {
+        Some(f) => stage1.load_preset_file(f)?,
+        None => stage1.preset = crate::stage1::Preset::from_name(&args.preset)?,
+    }
+    let path = match &args.frames {
+        Some(f) if !is_aedat4(f) => f.clone(),
+        _ => args.real.clone(),
+    };
+    let mut source = crate::frame::open(&path, &Default::default())?;
+    if source.size() != size {
+        return Err(Error::invalid(
+            "eval stage1",
+            format!(
+                "frames of {} x {} for a {} x {} recording",
+                source.size().0,
+                source.size().1,
+                size.0,
+                size.1
+            ),
+        ));
+    }
+    let mut frames = Vec::new();
+    while let Some(f) = source.next_frame()? {
+        frames.push(f);
+    }
+    eprintln!(
+        "v2ce: simulating {} frames of {} with the physics tier (preset {})",
+        frames.len(),
+        path.display(),
+        stage1.preset_name()
+    );
+    let events = crate::calibrate::simulate(&frames, size, &stage1.physics_config(), args.seed)?;
+    Ok(Recording::new(events, Some(size)))
+}
+
+/// Whether `path` names an AEDAT 4.0 file (by its extension).
+pub fn is_aedat4(path: &Path) -> bool {
+    path.extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("aedat4"))
+}
+
+/// Reads real events and their frame intervals: from `frames` (an .aedat4 with APS frames or
+/// IJRR images.txt), from a fixed `fps` starting at the first event, or, when neither is given,
+/// from the APS frames of an .aedat4 event file (decoded once with its events).
+pub fn load_events_and_intervals(
+    events_path: &Path,
+    frames: Option<&Path>,
+    fps: Option<f64>,
+) -> Result<(Recording, Vec<Interval>)> {
+    let own_frames =
+        fps.is_none() && is_aedat4(events_path) && frames.is_none_or(|f| f == events_path);
+    let (recording, frames) = if own_frames {
+        if frames.is_none() {
+            eprintln!(
+                "v2ce: no --frames or --fps: using the APS frames of {}",
+                events_path.display()
+            );
+        }
+        let (recording, frames) = format::aedat4::read(events_path)?;
+        (
+            recording,
+            Some(format::require_frames(events_path, frames)?),
+        )
+    } else {
+        let frames = match frames {
+            Some(path) => Some(format::read_frame_times(path)?),
+            None => None,
+        };
+        (format::read_events(events_path)?, frames)
+    };
+    let intervals = if let Some(frames) = frames {
+        intervals_from_frames(&frames)?
+    } else if let Some(fps) = fps {
+        let ev = recording.events.events();
+        match (ev.first(), ev.last()) {
+            (Some(a), Some(b)) => fixed_intervals(a.t, b.t, fps)?,
+            _ => Vec::new(),
+        }
+    } else {
+        return Err(Error::invalid(
+            "arguments",
+            "give --frames FILE or --fps F to define the frame intervals",
+        ));
+    };
+    Ok((recording, intervals))
+}

@@ -1,0 +1,122 @@
+//! `v2ce transcode`, `v2ce info` and `v2ce render`: event files in, event files or pictures out.
+
+use std::io::Write;
+use std::path::PathBuf;
+
+use clap::Args;
+
+use super::*;
+use crate::config::parse_size;
+use crate::error::{Error, Result};
+
+/// The flags of `v2ce transcode`.
+#[derive(Args)]
+pub struct TranscodeArgs {
+    /// Input: .aedat4, .raw (EVT 2.0 or 3.0, from its header), .csv, .npz, .h5/.hdf5 (DSEC
+    /// layout), or IJRR events.txt.
+    pub input: PathBuf,
+    /// Output; its extension picks the format: .aedat4, .raw, .csv, .npz, .h5/.hdf5.
+    pub output: PathBuf,
+    /// How the output is encoded (`--evt`, `--compression`).
+    #[command(flatten)]
+    pub encoding: EncodingArgs,
+    /// Sensor size WIDTHxHEIGHT to write (default: the input's, or the events' extent).
+    #[arg(long, value_name = "WxH")]
+    pub size: Option<String>,
+    /// Overwrite an existing output file.
+    #[arg(long)]
+    pub force: bool,
+}
+
+/// The flags of `v2ce info`.
+#[derive(Args)]
+pub struct InfoArgs {
+    /// An event file: .aedat4, .raw, .csv, .npz, .h5/.hdf5 or IJRR events.txt.
+    pub file: PathBuf,
+    /// Print one JSON object.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// The flags of `v2ce render`.
+#[derive(Args)]
+pub struct RenderArgs {
+    /// Events: .aedat4, .raw, .csv, .npz, .h5/.hdf5, IJRR .txt.
+    pub input: PathBuf,
+    /// The picture: .png (every event in one frame), .gif or .mp4 (frames at --fps).
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Frames per second of event time.
+    #[arg(long, default_value_t = 30.0)]
+    pub fps: f64,
+    /// Fade events with this time constant (ms) instead of showing each frame's window.
+    #[arg(long)]
+    pub decay_ms: Option<f64>,
+    /// Play back this many times slower than real time.
+    #[arg(long, default_value_t = 1.0)]
+    pub slowdown: f64,
+    /// Sensor size when the file has none (CSV).
+    #[arg(long, value_name = "WxH")]
+    pub size: Option<String>,
+    /// Overwrite an existing output file.
+    #[arg(long)]
+    pub force: bool,
+}
+
+/// Runs `v2ce transcode`.
+pub fn transcode(args: TranscodeArgs) -> Result<()> {
+    check_output(&args.output, args.force)?;
+    let fmt = args.encoding.format_for(&args.output)?;
+    let size = args.size.as_deref().map(parse_size).transpose()?;
+    let started = std::time::Instant::now();
+    let report = crate::transcode::transcode(&args.input, &args.output, fmt, size)?;
+    let secs = started.elapsed().as_secs_f64();
+    eprintln!(
+        "v2ce: wrote {} events ({} x {}, {}) to {} in {:.2} s",
+        report.events,
+        report.size.0,
+        report.size.1,
+        fmt.name(),
+        args.output.display(),
+        secs
+    );
+    Ok(())
+}
+
+/// Runs `v2ce info`.
+pub fn info(args: InfoArgs) -> Result<()> {
+    let s = crate::transcode::summarize(&args.file)?;
+    let mut out = std::io::stdout().lock();
+    let text = if args.json {
+        let mut v = serde_json::to_value(&s).map_err(|e| Error::invalid("json", e.to_string()))?;
+        v["span_us"] = s.span_us().into();
+        v["rate_hz"] = s.rate_hz().into();
+        v["on_ratio"] = s.on_ratio().into();
+        v.to_string()
+    } else {
+        format!("{}\n{s}", args.file.display())
+    };
+    writeln!(out, "{text}").map_err(|e| Error::io("stdout", e))
+}
+
+/// Runs `v2ce render`.
+pub fn render(args: RenderArgs) -> Result<()> {
+    check_output(&args.output, args.force)?;
+    let options = crate::render::RenderOptions {
+        fps: args.fps,
+        decay_us: args.decay_ms.map(|ms| ms * 1e3),
+        slowdown: args.slowdown,
+        size: args.size.as_deref().map(parse_size).transpose()?,
+    };
+    let r = crate::render::render(&args.input, &args.output, &options)?;
+    eprintln!(
+        "v2ce: {} events in {} frame{} of {} x {} to {}",
+        r.events,
+        r.frames,
+        if r.frames == 1 { "" } else { "s" },
+        r.size.0,
+        r.size.1,
+        args.output.display()
+    );
+    Ok(())
+}

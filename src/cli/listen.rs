@@ -1,0 +1,130 @@
+//! `v2ce listen`: a receiver of what the daemon sends.
+
+use std::io::Write;
+use std::path::PathBuf;
+
+use clap::Args;
+
+use super::*;
+use crate::config::parse_size;
+use crate::error::{Error, Result};
+
+/// The flags of `v2ce listen`.
+#[derive(Args)]
+pub struct ListenArgs {
+    /// Bind this HOST:PORT for UDP datagrams (port 0: any; the address is printed).
+    #[arg(long, conflicts_with = "tcp")]
+    pub udp: Option<String>,
+    /// The datagram format: spif, spif_timestamped, t64_x16_y16_on8, t32_x16_y15_on1.
+    #[arg(long, default_value = "spif")]
+    pub format: String,
+    /// Connect to a daemon's TCP stream at HOST:PORT (AEDAT 4.0 or RAW EVT 2.0/3.0).
+    #[arg(long)]
+    pub tcp: Option<String>,
+    /// Write the events to this file (.aedat4, .raw, .csv, .npz, .h5); plain spif events get their
+    /// arrival time.
+    #[arg(short, long)]
+    pub out: Option<PathBuf>,
+    /// Sensor size for the file (UDP formats carry none).
+    #[arg(long, value_name = "WxH", default_value = "640x480")]
+    pub size: String,
+    /// Stop after this many seconds.
+    #[arg(long)]
+    pub duration: Option<f64>,
+    /// Stop when nothing arrived for this many seconds after the first arrival.
+    #[arg(long, default_value_t = 2.0)]
+    pub idle: f64,
+    /// Stop after this many events.
+    #[arg(long)]
+    pub max_events: Option<u64>,
+    /// Kernel receive buffer for UDP, bytes (0: the system's default, about 200 KB, which holds
+    /// some 50 ms of a 300,000 events/s stream; the kernel caps the request at
+    /// net.core.rmem_max).
+    #[arg(long, default_value_t = 4 << 20)]
+    pub recv_buffer: usize,
+    /// Realtime priority of the receiving thread, 1-99, when the process may (root or
+    /// CAP_SYS_NICE; 0: normal scheduling): on busy cores a receiver at normal priority can
+    /// wait milliseconds, and a default receive buffer holds about one at a million events/s.
+    #[arg(long, default_value_t = 5)]
+    pub priority: u8,
+    /// Print the report as one JSON object on stdout.
+    #[arg(long)]
+    pub json: bool,
+    /// Overwrite an existing output file.
+    #[arg(long)]
+    pub force: bool,
+}
+
+/// Runs `v2ce listen`.
+pub fn listen(args: ListenArgs) -> Result<()> {
+    if let Some(out) = &args.out {
+        check_output(out, args.force)?;
+    }
+    use crate::listen::{Listen, ListenOptions};
+    let seconds = |what: &'static str, v: f64| crate::limits::seconds(what, v, true);
+    let listen = match (&args.udp, &args.tcp) {
+        (_, Some(connect)) => Listen::Tcp {
+            connect: connect.clone(),
+        },
+        (Some(bind), None) => Listen::Udp {
+            bind: bind.clone(),
+            format: crate::format::datagram::UdpFormat::from_name(&args.format)?,
+        },
+        (None, None) => Listen::Udp {
+            bind: "127.0.0.1:3333".into(),
+            format: crate::format::datagram::UdpFormat::from_name(&args.format)?,
+        },
+    };
+    let options = ListenOptions {
+        listen,
+        out: args.out.clone(),
+        size: parse_size(&args.size)?,
+        duration: args
+            .duration
+            .map(|d| seconds("--duration", d))
+            .transpose()?,
+        idle: seconds("--idle", args.idle)?,
+        max_events: args.max_events,
+        recv_buffer: args.recv_buffer,
+        priority: args.priority,
+    };
+    let stop = crate::daemon::stop_on_signals()?;
+    let report = crate::listen::listen(&options, &stop, |at| {
+        println!("listening on {at}");
+        let _ = std::io::stdout().flush();
+    })?;
+    if args.json {
+        let text =
+            serde_json::to_string(&report).map_err(|e| Error::invalid("report", e.to_string()))?;
+        println!("{text}");
+    } else {
+        println!(
+            "{} events in {} messages ({} ragged) over {:.2} s: {:.0} events/s; largest gap \
+             {:.1} ms; at most {} messages in one ms{}",
+            report.events,
+            report.messages,
+            report.ragged,
+            report.seconds,
+            report.events_per_s,
+            report.largest_gap_ms,
+            report.max_messages_per_ms,
+            report
+                .arrival_spread
+                .map(|l| format!(
+                    "; arrival minus event time (less its minimum) p50 {:.2} ms p99 {:.2} ms \
+                     max {:.2} ms",
+                    l.p50_ms, l.p99_ms, l.max_ms
+                ))
+                .unwrap_or_default()
+        );
+    }
+    let udp = args.udp.is_some() || args.tcp.is_none();
+    if udp && !report.realtime && args.priority > 0 {
+        eprintln!(
+            "v2ce listen: the receiver ran at normal priority (realtime {} refused: needs root or \
+             CAP_SYS_NICE); on busy cores it may lose datagrams",
+            args.priority
+        );
+    }
+    Ok(())
+}

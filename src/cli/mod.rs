@@ -1,0 +1,317 @@
+//! The command line: each command's flags (clap) and body, one module per command family, so
+//! that `main.rs` only parses and dispatches.
+
+pub mod batch;
+pub mod convert;
+pub mod dataset;
+pub mod eval;
+pub mod events;
+pub mod listen;
+pub mod model;
+pub mod run;
+pub mod tradeoff;
+
+use std::path::{Path, PathBuf};
+
+use clap::{Args, Subcommand};
+
+use self::batch::BatchArgs;
+use self::convert::ConvertArgs;
+use self::dataset::{CalibrateArgs, DatasetCommand};
+use self::eval::Eval;
+use self::events::{InfoArgs, RenderArgs, TranscodeArgs};
+use self::listen::ListenArgs;
+use self::model::ModelCommand;
+use self::run::{BenchArgs, BenchCommand, RunArgs};
+use crate::config::Config;
+use crate::error::{Error, Result};
+use crate::format::{self};
+
+/// The commands of `v2ce`.
+#[derive(Subcommand)]
+pub enum Command {
+    /// Score simulated events against real recordings.
+    #[command(subcommand)]
+    Eval(Eval),
+    /// Convert frames (a video, an image folder, a .y4m, or an .aedat4's APS frames) to events.
+    Convert(ConvertArgs),
+    /// Convert an event file to another format, streaming (.aedat4, .raw, .csv, .npz, .h5; IJRR
+    /// .txt in).
+    Transcode(TranscodeArgs),
+    /// Print an event file's sensor size, event count, time span, rate and ON ratio.
+    Info(InfoArgs),
+    /// The live daemon: capture (a camera, a replayed file, or the bundled fixture video),
+    /// simulate, and stream events over UDP / TCP / to a file until stopped.
+    Run(RunArgs),
+    /// List the cameras with their formats, sizes and frame rates.
+    Devices,
+    /// Measure the daemon: capture-to-send latency, CPU and memory at 346x260 and 640x480 on
+    /// the replayed fixture video.
+    Bench(BenchArgs),
+    /// Draw an event file: one accumulated frame (.png) or frames at a rate (.gif, .mp4).
+    Render(RenderArgs),
+    /// Receive what the daemon sends (UDP in any format, or its TCP stream): count events,
+    /// measure rate, gaps and timing, optionally write them to a file.
+    Listen(ListenArgs),
+    /// The learned tier's network: import the official checkpoint, run a raw tensor.
+    #[command(subcommand)]
+    Model(ModelCommand),
+    /// Fit the physics tier to your own sensor from a recording with frames and events, and
+    /// write the fitted preset file (for --preset-file).
+    Calibrate(CalibrateArgs),
+    /// Write training data for the learned tier: synthetic scenes with simulated ground truth,
+    /// or windows of a recording with frames and events.
+    #[command(subcommand)]
+    Dataset(DatasetCommand),
+    /// Convert a dataset as one task of a cluster job: this task's share of a manifest (Slurm
+    /// job arrays, Kubernetes Indexed Jobs), resumable, with a ledger per shard; or merge the
+    /// ledgers into one report (--report DIR)
+    Batch(BatchArgs),
+}
+
+impl Command {
+    /// Runs the command.
+    pub fn run(self) -> Result<()> {
+        match self {
+            Command::Eval(Eval::Stage2(args)) => eval::eval_stage2(args),
+            Command::Eval(Eval::Stage1(args)) => eval::eval_stage1(args),
+            Command::Convert(args) => convert::convert(args),
+            Command::Transcode(args) => events::transcode(args),
+            Command::Info(args) => events::info(args),
+            Command::Run(args) => run::run(args),
+            Command::Devices => run::devices(),
+            Command::Bench(BenchArgs {
+                what: Some(BenchCommand::Tradeoff(args)),
+                ..
+            }) => tradeoff::tradeoff(args),
+            Command::Bench(args) => run::bench(args),
+            Command::Listen(args) => listen::listen(args),
+            Command::Render(args) => events::render(args),
+            Command::Model(ModelCommand::Import(args)) => model::model_import(args),
+            Command::Model(ModelCommand::Run(args)) => model::model_run(args),
+            Command::Model(ModelCommand::Bench(args)) => model::model_bench(args),
+            Command::Calibrate(args) => dataset::calibrate(args),
+            Command::Dataset(DatasetCommand::Synthetic(args)) => dataset::dataset_synthetic(args),
+            Command::Dataset(DatasetCommand::Recording(args)) => dataset::dataset_recording(args),
+            Command::Batch(args) => batch::batch(args),
+        }
+    }
+}
+
+/// How `v2ce model run` and `bench` run the network.
+#[derive(Args)]
+pub struct RuntimeArgs {
+    /// ONNX Runtime threads (0: one per core).
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
+    /// Execution provider: cpu, cuda, auto (CUDA when the library has it and it starts).
+    #[arg(long, value_enum, default_value_t = crate::stage1::learned::Device::Auto)]
+    pub device: crate::stage1::learned::Device,
+    /// Keep ONNX Runtime's CPU memory arena (off by default: half the peak memory).
+    #[arg(long)]
+    pub cpu_arena: bool,
+}
+
+impl RuntimeArgs {
+    /// The runtime options these flags ask for.
+    pub fn options(&self) -> crate::stage1::learned::RuntimeOptions {
+        crate::stage1::learned::RuntimeOptions {
+            threads: self.threads,
+            device: self.device,
+            library: None,
+            cpu_arena: self.cpu_arena,
+        }
+    }
+}
+
+/// Stage 1 tier flags shared by `convert` and `run` (each overrides `[stage1]` and
+/// `[stage1.learned]`).
+#[derive(Args)]
+pub struct TierArgs {
+    /// Stage 1 tier: physics (the pixel model), learned (the V2CE network; the built-in model
+    /// unless --model), auto (learned when this machine runs it at --budget-fps, else
+    /// physics) [config default: physics].
+    #[arg(long, value_enum)]
+    pub stage1: Option<crate::stage1::Tier>,
+    /// The frame rate `--stage1 auto` must hold (0: none) [config default: 30].
+    #[arg(long, value_name = "FPS")]
+    pub budget_fps: Option<f64>,
+    /// ONNX model of the learned tier (implies --stage1 learned) [config default: none].
+    #[arg(long, value_name = "M.onnx")]
+    pub model: Option<PathBuf>,
+    /// Frame intervals per window of the learned tier (the network was trained on 16) [config
+    /// default: 16].
+    #[arg(long)]
+    pub window: Option<usize>,
+    /// New intervals per window (1..=window; less overlaps windows for a shorter wait) [config
+    /// default: 0, the window].
+    #[arg(long)]
+    pub stride: Option<usize>,
+    /// How frames are fitted to the network: native, resize, center, pano [config default:
+    /// native].
+    #[arg(long, value_enum)]
+    pub geometry: Option<crate::stage1::Geometry>,
+    /// ONNX Runtime threads (0: one per core) [config default: 0].
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Execution provider: cpu, cuda, auto [config default: auto].
+    #[arg(long, value_enum)]
+    pub device: Option<crate::stage1::learned::Device>,
+    /// Learned tier: output values below this are zero before Stage 2 [config default: unset,
+    /// the built-in model's own floor, 0 for other models].
+    #[arg(long)]
+    pub floor: Option<f32>,
+    /// Learned tier: pixels the network's crops reach beyond the regions that changed (less
+    /// than the model's receptive field is faster, no longer exact) [config default: unset, the
+    /// model's receptive field].
+    #[arg(long, value_name = "PX")]
+    pub roi_margin: Option<usize>,
+    /// Learned tier: run the network on whole frames, not only around what changed.
+    #[arg(long)]
+    pub no_roi: bool,
+}
+
+impl TierArgs {
+    /// Writes the flags given onto `config` (`[stage1]`, `[stage1.learned]`) and checks the result.
+    pub fn apply(&self, config: &mut Config) -> Result<()> {
+        let learned = &mut config.stage1.learned;
+        if let Some(m) = &self.model {
+            learned.model = m.clone();
+            config.stage1.tier = crate::stage1::Tier::Learned;
+        }
+        if let Some(t) = self.stage1 {
+            config.stage1.tier = t;
+        }
+        if let Some(v) = self.window {
+            learned.window = v;
+        }
+        if let Some(v) = self.stride {
+            learned.stride = v;
+        }
+        if let Some(v) = self.geometry {
+            learned.geometry = v;
+        }
+        if let Some(v) = self.threads {
+            learned.threads = v;
+        }
+        if let Some(v) = self.device {
+            learned.device = v;
+        }
+        if let Some(v) = self.floor {
+            learned.floor = Some(v);
+        }
+        if let Some(v) = self.roi_margin {
+            learned.roi_margin = Some(v);
+        }
+        if self.no_roi {
+            learned.roi = false;
+        }
+        if let Some(v) = self.budget_fps {
+            config.stage1.budget_fps = v;
+        }
+        config.stage1.validate()?;
+        config.stage1.learned.validate()
+    }
+}
+
+/// How an output file is encoded, beyond what its extension says.
+#[derive(Args)]
+pub struct EncodingArgs {
+    /// EVT version of a .raw output (2 by default: some readers mis-time EVT 3.0).
+    #[arg(long, value_parser = ["2", "3"], default_value = "2")]
+    pub evt: String,
+    /// Packet compression of an .aedat4 output: lz4, zstd, zstd-high or none.
+    #[arg(long, default_value = "lz4")]
+    pub compression: String,
+}
+
+impl EncodingArgs {
+    /// The output format for `path`.
+    pub fn format_for(&self, path: &Path) -> Result<format::Format> {
+        let compression = format::Compression::from_name(&self.compression)?;
+        format::Format::for_output(path, self.evt.parse::<u8>().ok(), compression)
+    }
+}
+
+/// Refuses to replace an existing file unless `force` (the `--force` flag).
+pub fn check_output(path: &Path, force: bool) -> Result<()> {
+    if path.exists() && !force {
+        return Err(Error::invalid(
+            "output",
+            format!("{} exists; add --force to overwrite it", path.display()),
+        ));
+    }
+    Ok(())
+}
+
+/// A recording's events and up to `max_frames` of its frames (from `frames`, or the
+/// recording itself), checked to be of one size.
+pub fn load_recording(
+    real: &Path,
+    frames: Option<&Path>,
+    color: crate::frame::images::ColorSpace,
+    max_frames: usize,
+) -> Result<(format::Recording, Vec<crate::frame::Frame>)> {
+    use crate::frame::FrameSource;
+    let events = format::read_events(real)?;
+    let options = crate::frame::SourceOptions { fps: None, color };
+    let frames_path = frames.unwrap_or(real);
+    let mut source: Box<dyn FrameSource> = crate::frame::open(frames_path, &options)?;
+    if source.size() != (events.width, events.height) {
+        return Err(Error::invalid(
+            "recording",
+            format!(
+                "frames of {} x {} for events of a {} x {} sensor",
+                source.size().0,
+                source.size().1,
+                events.width,
+                events.height
+            ),
+        ));
+    }
+    let mut out = Vec::new();
+    while out.len() < max_frames {
+        match source.next_frame()? {
+            Some(f) => out.push(f),
+            None => break,
+        }
+    }
+    Ok((events, out))
+}
+
+/// `frames/total frames (pct), N events, rate, ETA` (without a total: frames, events, rate).
+pub fn progress_line(frames: u64, total: Option<u64>, events: u64, seconds: f64) -> String {
+    let rate = frames as f64 / seconds.max(1e-9);
+    match total {
+        Some(total) if total > 0 => {
+            let left = total.saturating_sub(frames) as f64 / rate.max(1e-9);
+            format!(
+                "{frames}/{total} frames ({:.1}%), {events} events, {rate:.1} frames/s, ETA {}   ",
+                100.0 * frames as f64 / total as f64,
+                if frames == 0 {
+                    "-".to_string()
+                } else {
+                    format!("{:.0} s", left)
+                }
+            )
+        }
+        _ => format!("{frames} frames, {events} events, {rate:.1} frames/s   "),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn progress_shows_total_percentage_and_eta_when_the_length_is_known() {
+        let line = super::progress_line(50, Some(200), 1234, 5.0);
+        assert!(
+            line.starts_with("50/200 frames (25.0%), 1234 events, 10.0 frames/s, ETA 15 s"),
+            "{line}"
+        );
+        let line = super::progress_line(7, None, 9, 1.0);
+        assert!(
+            line.starts_with("7 frames, 9 events, 7.0 frames/s"),
+            "{line}"
+        );
+    }
+}

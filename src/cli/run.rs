@@ -1,0 +1,297 @@
+//! `v2ce run`, `v2ce devices` and `v2ce bench`: the daemon, its cameras, its measurement.
+
+use std::path::PathBuf;
+
+use clap::{Args, Subcommand};
+
+use super::tradeoff::TradeoffArgs;
+use super::*;
+use crate::config::{parse_size, Config};
+use crate::error::{Error, Result};
+
+/// The flags of `v2ce run`.
+#[derive(Args)]
+pub struct RunArgs {
+    /// TOML configuration file (the flags below override it); see config/v2ce.toml.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// A camera (/dev/video0 or an index), a file or image folder, or `fixture` [config default:
+    /// "", the first camera, else the fixture].
+    #[arg(long)]
+    pub source: Option<String>,
+    /// Send UDP datagrams to HOST:PORT (an empty string turns UDP off) [config default:
+    /// 127.0.0.1:3333].
+    #[arg(long)]
+    pub udp: Option<String>,
+    /// Datagram format: spif, spif_timestamped, t64_x16_y16_on8, t32_x16_y15_on1 [config
+    /// default: spif].
+    #[arg(long)]
+    pub udp_format: Option<String>,
+    /// Largest UDP payload in bytes [config default: 512, which aestream and SpiNNaker's SPIF
+    /// listener read whole].
+    #[arg(long)]
+    pub udp_payload: Option<usize>,
+    /// Most UDP datagrams per second (0: unpaced) [config default: 0].
+    #[arg(long)]
+    pub udp_rate: Option<u32>,
+    /// When UDP events leave: event-time (each at its own time + the delay) or asap
+    /// [config default: event-time].
+    #[arg(long, value_enum)]
+    pub emit: Option<crate::config::EmitMode>,
+    /// How far behind the frames events leave at event time, ms [config default: 100].
+    #[arg(long)]
+    pub emit_delay_ms: Option<f64>,
+    /// Realtime priority of the thread that sends at event time, 1-99 (0: normal scheduling)
+    /// [config default: 10, when the process may].
+    #[arg(long)]
+    pub emit_priority: Option<u8>,
+    /// Sensor preset of the physics tier: davis346, dvxplorer, ideal [config default: davis346].
+    #[arg(long)]
+    pub preset: Option<String>,
+    /// A preset file (as `v2ce calibrate` writes) instead of --preset [config default: "",
+    /// none].
+    #[arg(long, conflicts_with = "preset")]
+    pub preset_file: Option<PathBuf>,
+    /// Serve an event stream to TCP clients on HOST:PORT [config default: "", off].
+    #[arg(long)]
+    pub tcp: Option<String>,
+    /// What TCP clients receive: aedat4 (DV's network stream), evt2 or evt3 (Prophesee RAW,
+    /// a .raw file's bytes) [config default: aedat4].
+    #[arg(long, value_enum)]
+    pub tcp_format: Option<crate::sink::tcp::TcpFormat>,
+    /// Hold the source until the first TCP client has connected.
+    #[arg(long)]
+    pub wait_for_client: bool,
+    /// Also write the events to this file (.aedat4, .raw, .csv, .npz, .h5) [config default: "",
+    /// none].
+    #[arg(long)]
+    pub out: Option<String>,
+    /// Seed of mismatch, noise and sampling [config default: 0].
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// A full queue: block (lose nothing) or drop-oldest (stay live) [config default:
+    /// drop-oldest].
+    #[arg(long)]
+    pub queue_policy: Option<String>,
+    /// Stop after this many seconds [config default: 0, no limit].
+    #[arg(long)]
+    pub duration: Option<f64>,
+    /// Stop after this many frames [config default: 0, no limit].
+    #[arg(long)]
+    pub max_frames: Option<u64>,
+    /// Resample frames to WIDTHxHEIGHT [config default: "", the source's size].
+    #[arg(long, value_name = "WxH")]
+    pub size: Option<String>,
+    /// Replay a file at this multiple of real time [config default: 1].
+    #[arg(long)]
+    pub replay_speed: Option<f64>,
+    /// Replay a file again and again.
+    #[arg(long = "loop")]
+    pub loop_source: bool,
+    /// Seconds between stats lines [config default: 10].
+    #[arg(long)]
+    pub stats_interval: Option<f64>,
+    /// Serve /metrics, /healthz, /readyz and the live preview page on IP:PORT (port 0: any;
+    /// the address is logged) [config default: off]
+    #[arg(long, value_name = "IP:PORT")]
+    pub http: Option<String>,
+    /// /readyz turns not ready after this many seconds without a frame [config default: 2]
+    #[arg(long)]
+    pub ready_timeout: Option<f64>,
+    /// Print the final report as one JSON object on stdout.
+    #[arg(long)]
+    pub json: bool,
+    /// The Stage 1 tier and its settings.
+    #[command(flatten)]
+    pub tier: TierArgs,
+}
+
+/// The flags of `v2ce bench`.
+#[derive(Args)]
+#[command(args_conflicts_with_subcommands = true)]
+pub struct BenchArgs {
+    /// Another measurement instead of the daemon's.
+    #[command(subcommand)]
+    pub what: Option<BenchCommand>,
+    /// Seconds per configuration.
+    #[arg(long, default_value_t = 30.0)]
+    pub seconds: f64,
+    /// Sizes to measure.
+    #[arg(long, value_delimiter = ',', default_value = "346x260,640x480")]
+    pub sizes: Vec<String>,
+    /// Print the results as JSON lines.
+    #[arg(long)]
+    pub json: bool,
+    /// Replay the fixture at this multiple of real time (below 1 for a tier slower than real
+    /// time).
+    #[arg(long, default_value_t = 1.0)]
+    pub replay_speed: f64,
+    /// Run the HTTP listener on IP:PORT during the bench (to measure what it, a scraper and an
+    /// open preview page cost)
+    #[arg(long, value_name = "IP:PORT")]
+    pub http: Option<String>,
+    /// TOML configuration for Stage 1 and Stage 2 (the flags below override it).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// The Stage 1 tier and its settings.
+    #[command(flatten)]
+    pub tier: TierArgs,
+}
+
+/// The `v2ce bench` subcommands.
+#[derive(Subcommand)]
+pub enum BenchCommand {
+    /// Every Stage 1 tier and setting on the same frames: speed (pairs/s, window latency) and
+    /// accuracy (TF1, TPF1, count ratio, C-METE) against a real recording's held-out half and
+    /// synthetic sequences, with the Pareto front (README: "The speed/accuracy trade").
+    Tradeoff(TradeoffArgs),
+}
+
+/// The daemon's configuration: the `--config` file (or the defaults) with the flags given written over it, checked.
+pub fn run_config(args: &RunArgs) -> Result<Config> {
+    let mut config = match &args.config {
+        Some(path) => Config::load(path)?,
+        None => Config::default(),
+    };
+    let run = &mut config.run;
+    if let Some(v) = &args.source {
+        run.source = v.clone();
+    }
+    if let Some(v) = &args.udp {
+        run.udp = v.clone();
+    }
+    if let Some(v) = &args.udp_format {
+        run.udp_format = crate::format::datagram::UdpFormat::from_name(v)?;
+    }
+    if let Some(v) = args.udp_payload {
+        run.udp_payload = v;
+    }
+    if let Some(v) = args.udp_rate {
+        run.udp_rate = v;
+    }
+    if let Some(v) = args.emit {
+        run.emit = v;
+    }
+    if let Some(v) = args.emit_delay_ms {
+        run.emit_delay_ms = v;
+    }
+    if let Some(v) = args.emit_priority {
+        run.emit_priority = v;
+    }
+    if let Some(v) = &args.tcp {
+        run.tcp = v.clone();
+    }
+    if let Some(v) = args.tcp_format {
+        run.tcp_format = v;
+    }
+    if let Some(v) = &args.out {
+        run.out = v.clone();
+    }
+    if args.wait_for_client {
+        run.wait_for_client = true;
+    }
+    if let Some(v) = &args.queue_policy {
+        run.queue_policy = crate::pipeline::queue::QueuePolicy::from_name(v)?;
+    }
+    if let Some(v) = args.duration {
+        run.duration = v;
+    }
+    if let Some(v) = args.max_frames {
+        run.max_frames = v;
+    }
+    if let Some(v) = &args.size {
+        run.size = v.clone();
+    }
+    if let Some(v) = args.replay_speed {
+        run.replay_speed = v;
+    }
+    if args.loop_source {
+        run.loop_source = true;
+    }
+    if let Some(v) = args.stats_interval {
+        run.stats_interval = v;
+    }
+    if let Some(v) = &args.http {
+        run.http = v.clone();
+    }
+    if let Some(v) = args.ready_timeout {
+        run.ready_timeout = v;
+    }
+    if let Some(s) = args.seed {
+        config.stage1.seed = s;
+        config.stage2.seed = s;
+    }
+    if let Some(p) = &args.preset {
+        config.stage1.preset = crate::stage1::Preset::from_name(p)?;
+        config.stage1.custom = None;
+    }
+    if let Some(f) = &args.preset_file {
+        config.stage1.load_preset_file(f)?;
+    }
+    args.tier.apply(&mut config)?;
+    config.validate()?;
+    Ok(config)
+}
+
+/// Runs `v2ce run` until the source ends, a limit is reached or a signal stops it.
+pub fn run(args: RunArgs) -> Result<()> {
+    let config = run_config(&args)?;
+    let stop = crate::daemon::stop_on_signals()?;
+    let report = crate::daemon::run(&config, &stop)?;
+    if args.json {
+        let text =
+            serde_json::to_string(&report).map_err(|e| Error::invalid("report", e.to_string()))?;
+        println!("{text}");
+    }
+    if report.end.is_clean() {
+        Ok(())
+    } else {
+        Err(Error::Run(report.end.describe()))
+    }
+}
+
+/// Runs `v2ce devices`.
+pub fn devices() -> Result<()> {
+    let cameras = crate::capture::list_cameras()?;
+    if cameras.is_empty() {
+        println!("no cameras found");
+    }
+    for camera in cameras {
+        println!("{camera}");
+    }
+    Ok(())
+}
+
+/// Runs `v2ce bench` (the daemon on the replayed fixture, per size).
+pub fn bench(args: BenchArgs) -> Result<()> {
+    let stop = crate::daemon::stop_on_signals()?;
+    let mut config = match &args.config {
+        Some(path) => Config::load(path)?,
+        None => Config::default(),
+    };
+    args.tier.apply(&mut config)?;
+    if let Some(h) = &args.http {
+        config.run.http = h.clone();
+        config.run.validate()?;
+    }
+    for size in &args.sizes {
+        let result = crate::daemon::bench(
+            parse_size(size)?,
+            args.seconds,
+            args.replay_speed,
+            &config,
+            &stop,
+        )?;
+        if args.json {
+            let text = serde_json::to_string(&result)
+                .map_err(|e| Error::invalid("report", e.to_string()))?;
+            println!("{text}");
+        } else {
+            println!("{}", result.line());
+        }
+        if result.end == crate::pipeline::End::Stopped {
+            break;
+        }
+    }
+    Ok(())
+}
