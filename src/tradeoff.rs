@@ -135,12 +135,8 @@ pub fn measure(setting: &Setting, scene: &Scene) -> Result<Row> {
         pairs,
         seconds,
         pairs_per_s: pairs as f64 / seconds.max(1e-9),
-        window_ms: stats.learned.window_ms_p50,
-        compute: if stats.tier == "learned" {
-            stats.learned.compute()
-        } else {
-            1.0
-        },
+        window_ms: stats.window_ms_p50,
+        compute: stats.compute,
         tf1: m.tf1,
         tpf1: m.tpf1,
         count_ratio: m.count_ratio(),

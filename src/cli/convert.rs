@@ -149,36 +149,19 @@ pub fn convert(args: ConvertArgs) -> Result<()> {
     }
     let report = result?;
     let s1 = &report.stage1;
-    let detail = match s1.tier {
-        "learned" => format!(
-            "{} windows of L={} (stride {}, {} skipped as still), median {:.0} ms per window on \
-             {}, the network ran on {:.0}% of the pixels",
-            s1.learned.windows,
-            s1.window,
-            s1.stride,
-            s1.learned.windows_skipped,
-            s1.learned.window_ms_p50,
-            s1.learned.provider,
-            100.0 * s1.learned.compute()
-        ),
-        _ => format!(
-            "{} of {} tiles skipped as static",
-            s1.physics.tiles_skipped,
-            s1.physics.tiles_skipped + s1.physics.tiles_active
-        ),
-    };
     eprintln!(
-        "v2ce: {} frames, {} events in {:.2} s ({:.1} frames/s); {detail}",
+        "v2ce: {} frames, {} events in {:.2} s ({:.1} frames/s); {}",
         report.frames,
         report.events,
         report.seconds,
         report.frames as f64 / report.seconds.max(1e-9),
+        s1.summary
     );
-    if s1.learned.nonfinite > 0 || report.repaired.any() {
+    if s1.nonfinite > 0 || report.repaired.any() {
         eprintln!(
             "v2ce: warning: the model gave {} NaN/infinite values; Stage 2 repaired {} \
              non-finite, {} negative, {} clamped node values",
-            s1.learned.nonfinite,
+            s1.nonfinite,
             report.repaired.nonfinite,
             report.repaired.negative,
             report.repaired.clamped

@@ -626,7 +626,7 @@ fn stage1_stage(
     // The end of the stream (or a stop): what is held still goes out, unless a stop must not
     // wait for a slow window.
     let s = stage1.stats();
-    let window = Duration::from_secs_f64(s.learned.window_ms_p50 / 1e3);
+    let window = Duration::from_secs_f64(s.window_ms_p50 / 1e3);
     if ctx.stop.load(Ordering::Relaxed) && stop_flush_limit.is_some_and(|limit| window > limit) {
         tracing::warn!(
             "stopping: the intervals held for the next window are dropped (a window takes \

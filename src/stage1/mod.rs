@@ -16,6 +16,7 @@ pub mod learned;
 pub mod physics;
 
 use serde::{Deserialize, Serialize};
+use serde_json::value::RawValue;
 
 use crate::error::{Error, Result};
 use crate::event::Event;
@@ -60,19 +61,128 @@ impl Stage1Batch {
     }
 }
 
-/// What a Stage 1 tier did, for reports.
-#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+/// A counter a tier fills, exported on `/metrics` as
+/// `v2ce_stage1_{family}_total{result="{result}"}`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Counter {
+    /// The metric family (`tiles`, `windows`).
+    pub family: &'static str,
+    /// The family's help line.
+    pub help: &'static str,
+    /// The `result` label (`active`, `skipped`, `run`).
+    pub result: &'static str,
+    /// The count so far.
+    pub value: u64,
+}
+
+/// A tier's own counters: what it reports in its section of a report, and the [`Counter`]s
+/// it exports. The zero record stands for a tier that did not run.
+pub trait TierRecord: Serialize + Default {
+    /// The tier's name, the key of its section in reports.
+    const TIER: &'static str;
+    /// The counters this record holds, for `/metrics`.
+    fn counters(&self) -> Vec<Counter>;
+}
+
+/// A record as JSON text, its fields in their declared order.
+pub fn record_json<R: TierRecord>(record: &R) -> Box<RawValue> {
+    serde_json::value::to_raw_value(record).unwrap_or_else(|_| null())
+}
+
+fn null() -> Box<RawValue> {
+    RawValue::from_string("null".into()).expect("null is JSON")
+}
+
+/// A zero section of every tier (its name, its record as JSON, its counters), in the order
+/// reports list them.
+fn zero_sections() -> Vec<(&'static str, Box<RawValue>, Vec<Counter>)> {
+    fn zero<R: TierRecord>() -> (&'static str, Box<RawValue>, Vec<Counter>) {
+        let r = R::default();
+        (R::TIER, record_json(&r), r.counters())
+    }
+    vec![zero::<PhysicsStats>(), zero::<LearnedStats>()]
+}
+
+/// Every tier's counters, each with the value `stats` holds (zero for the tiers that did not
+/// run): the families `/metrics` always exports.
+pub fn all_counters(stats: &Stage1Stats) -> Vec<Counter> {
+    zero_sections()
+        .into_iter()
+        .flat_map(|(tier, _, zeros)| {
+            zeros.into_iter().map(move |zero| {
+                let value = stats
+                    .counters
+                    .iter()
+                    .find(|c| {
+                        tier == stats.tier && c.family == zero.family && c.result == zero.result
+                    })
+                    .map_or(0, |c| c.value);
+                Counter { value, ..zero }
+            })
+        })
+        .collect()
+}
+
+/// What a Stage 1 tier did, in the terms every tier shares: the pipeline, `/metrics`, `bench
+/// tradeoff` and the command line read these and never a concrete tier's record.
+#[derive(Debug, Clone)]
 pub struct Stage1Stats {
     /// The tier's name (`physics`, `learned`).
     pub tier: &'static str,
-    /// Frame intervals per window (1 for the physics tier).
+    /// Frame intervals per window (1 for a tier that works interval by interval).
     pub window: usize,
     /// New intervals per window (equal to `window` when windows do not overlap).
     pub stride: usize,
-    /// The pixel model's counters (physics tier; zero otherwise).
-    pub physics: PhysicsStats,
-    /// The network's counters (learned tier; zero otherwise).
-    pub learned: LearnedStats,
+    /// Median time of one window's work, ms (0 for a tier that does not time its windows).
+    pub window_ms_p50: f64,
+    /// The share of whole-frame work the tier spent (1 when it ran on everything, or before
+    /// any work).
+    pub compute: f64,
+    /// Values the tier's model gave that were NaN or infinite.
+    pub nonfinite: u64,
+    /// What the tier did, in words, for the end of a conversion's report line.
+    pub summary: String,
+    /// The tier's named counters.
+    pub counters: Vec<Counter>,
+    /// The tier's own record, as JSON ([`record_json`]): its section of a report.
+    pub record: Box<RawValue>,
+}
+
+impl Default for Stage1Stats {
+    fn default() -> Self {
+        Stage1Stats {
+            tier: "",
+            window: 0,
+            stride: 0,
+            window_ms_p50: 0.0,
+            compute: 1.0,
+            nonfinite: 0,
+            summary: String::new(),
+            counters: Vec::new(),
+            record: null(),
+        }
+    }
+}
+
+/// Reports show the tier, its window and stride, then a section per tier: the record of the
+/// one that ran, zeros for the others.
+impl Serialize for Stage1Stats {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        use serde::ser::SerializeStruct;
+        let sections = zero_sections();
+        let mut m = s.serialize_struct("Stage1Stats", 3 + sections.len())?;
+        m.serialize_field("tier", self.tier)?;
+        m.serialize_field("window", &self.window)?;
+        m.serialize_field("stride", &self.stride)?;
+        for (tier, zero, _) in &sections {
+            if *tier == self.tier {
+                m.serialize_field(tier, &self.record)?;
+            } else {
+                m.serialize_field(tier, zero)?;
+            }
+        }
+        m.end()
+    }
 }
 
 /// One Stage 1 tier: frames in, batches of events or voxels out.

@@ -376,6 +376,23 @@ pub struct PhysicsStats {
     pub noise_events: u64,
 }
 
+impl super::TierRecord for PhysicsStats {
+    const TIER: &'static str = "physics";
+
+    fn counters(&self) -> Vec<super::Counter> {
+        let tiles = |result, value| super::Counter {
+            family: "tiles",
+            help: "Tiles the pixel model updated or skipped as static.",
+            result,
+            value,
+        };
+        vec![
+            tiles("active", self.tiles_active),
+            tiles("skipped", self.tiles_skipped),
+        ]
+    }
+}
+
 impl PhysicsStats {
     /// Adds another run's counters (a simulation restarted mid-stream).
     pub fn add(&mut self, o: PhysicsStats) {
@@ -1012,6 +1029,13 @@ pub struct PhysicsStage1 {
 }
 
 impl PhysicsStage1 {
+    /// The counters so far, across restarts.
+    fn counters(&self) -> PhysicsStats {
+        let mut physics = self.earlier;
+        physics.add(self.sim.stats());
+        physics
+    }
+
     /// The configured preset and overrides for `size` frames; `bins` nodes per voxel.
     pub fn new(config: &super::Stage1Config, bins: usize, size: (u16, u16)) -> Result<Self> {
         let voxelizer = match config.output {
@@ -1071,7 +1095,7 @@ impl super::Stage1 for PhysicsStage1 {
     /// The sensor's fixed pattern (threshold mismatch, hot pixels) stays the same, since it
     /// comes from the same seed.
     fn restart(&mut self) -> Result<()> {
-        let mut earlier = self.stats().physics;
+        let mut earlier = self.counters();
         *self = PhysicsStage1::new(&self.config, self.bins, self.size)?;
         std::mem::swap(&mut self.earlier, &mut earlier);
         Ok(())
@@ -1082,14 +1106,19 @@ impl super::Stage1 for PhysicsStage1 {
     }
 
     fn stats(&self) -> super::Stage1Stats {
-        let mut physics = self.earlier;
-        physics.add(self.sim.stats());
+        let physics = self.counters();
         super::Stage1Stats {
-            tier: "physics",
+            tier: <PhysicsStats as super::TierRecord>::TIER,
             window: 1,
             stride: 1,
-            physics,
-            learned: Default::default(),
+            summary: format!(
+                "{} of {} tiles skipped as static",
+                physics.tiles_skipped,
+                physics.tiles_skipped + physics.tiles_active
+            ),
+            counters: super::TierRecord::counters(&physics),
+            record: super::record_json(&physics),
+            ..Default::default()
         }
     }
 

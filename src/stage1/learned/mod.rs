@@ -248,6 +248,23 @@ pub struct LearnedStats {
     pub provider: &'static str,
 }
 
+impl super::TierRecord for LearnedStats {
+    const TIER: &'static str = "learned";
+
+    fn counters(&self) -> Vec<super::Counter> {
+        let windows = |result, value| super::Counter {
+            family: "windows",
+            help: "Windows the learned tier ran, by result (run, skipped as still).",
+            result,
+            value,
+        };
+        vec![
+            windows("run", self.windows),
+            windows("skipped", self.windows_skipped),
+        ]
+    }
+}
+
 impl LearnedStats {
     /// The share of whole-frame compute spent: pixels run over pixels a whole-frame run of
     /// every window would take (1 before any window).
@@ -680,11 +697,25 @@ impl Stage1 for LearnedStage1 {
             learned.window_ms_max = self.window_us.max() as f64 / 1e3;
         }
         Stage1Stats {
-            tier: "learned",
+            tier: <LearnedStats as super::TierRecord>::TIER,
             window: self.config.window,
             stride: self.config.stride(),
-            physics: Default::default(),
-            learned,
+            window_ms_p50: learned.window_ms_p50,
+            compute: learned.compute(),
+            nonfinite: learned.nonfinite,
+            summary: format!(
+                "{} windows of L={} (stride {}, {} skipped as still), median {:.0} ms per window \
+                 on {}, the network ran on {:.0}% of the pixels",
+                learned.windows,
+                self.config.window,
+                self.config.stride(),
+                learned.windows_skipped,
+                learned.window_ms_p50,
+                learned.provider,
+                100.0 * learned.compute()
+            ),
+            counters: super::TierRecord::counters(&learned),
+            record: super::record_json(&learned),
         }
     }
 

@@ -12,14 +12,17 @@
 //! A scrape reads the pipeline's atomic counters and takes its histograms' locks for a copy;
 //! the stage threads never wait on the listener (a slow client blocks only its own thread).
 
-use std::fmt::Write as _;
+mod metrics;
+
+pub use metrics::{metrics, BUCKETS_S};
+
 use std::io::Write as _;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use crate::error::{Error, Result};
-use crate::pipeline::stats::{Counters, QueueSnapshot, SinkSnapshot, Timing};
+use crate::pipeline::stats::Counters;
 use crate::sink::preview::PreviewBuffer;
 
 /// Server-sent event streams served at once; more get 503.
@@ -68,254 +71,8 @@ impl Status {
     }
 }
 
-/// Escapes a Prometheus label value.
-fn label(v: &str) -> String {
-    v.replace('\\', "\\\\")
-        .replace('"', "\\\"")
-        .replace('\n', "\\n")
-}
-
-/// Bucket bounds of the latency histograms, seconds.
-pub const BUCKETS_S: [f64; 14] = [
-    0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0,
-];
-
-/// The `/metrics` text (Prometheus exposition format 0.0.4).
-pub fn metrics(status: &Status) -> String {
-    let s = status.counters.peek();
-    let mut out = String::with_capacity(8192);
-    let head = |out: &mut String, name: &str, kind: &str, help: &str| {
-        let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} {kind}");
-    };
-    head(
-        &mut out,
-        "v2ce_frames_total",
-        "counter",
-        "Frames read from the source.",
-    );
-    let _ = writeln!(out, "v2ce_frames_total {}", s.frames_in);
-    head(
-        &mut out,
-        "v2ce_frames_processed_total",
-        "counter",
-        "Frames through Stage 1.",
-    );
-    let _ = writeln!(out, "v2ce_frames_processed_total {}", s.frames_processed);
-    head(
-        &mut out,
-        "v2ce_frames_dropped_total",
-        "counter",
-        "Frames dropped, by cause: evicted from a full queue, or out of order.",
-    );
-    let _ = writeln!(
-        out,
-        "v2ce_frames_dropped_total{{cause=\"queue\"}} {}\nv2ce_frames_dropped_total{{cause=\"out_of_order\"}} {}",
-        s.frames_dropped.saturating_sub(s.frames_out_of_order),
-        s.frames_out_of_order
-    );
-    head(
-        &mut out,
-        "v2ce_source_restarts_total",
-        "counter",
-        "Times the source was reopened (a camera back, a replay looped).",
-    );
-    let _ = writeln!(out, "v2ce_source_restarts_total {}", s.source_restarts);
-    head(
-        &mut out,
-        "v2ce_events_total",
-        "counter",
-        "Events handed to the outputs.",
-    );
-    let _ = writeln!(out, "v2ce_events_total {}", s.events_out);
-    head(
-        &mut out,
-        "v2ce_sink_events_total",
-        "counter",
-        "Events per output, by result: sent (handed to the kernel or written), dropped, refused (UDP port closed).",
-    );
-    for k in &s.sinks {
-        let n = label(&k.sink);
-        let st = &k.stats;
-        let _ = writeln!(
-            out,
-            "v2ce_sink_events_total{{sink=\"{n}\",result=\"sent\"}} {}\n\
-             v2ce_sink_events_total{{sink=\"{n}\",result=\"dropped\"}} {}\n\
-             v2ce_sink_events_total{{sink=\"{n}\",result=\"refused\"}} {}",
-            st.events_sent, st.events_dropped, st.events_refused
-        );
-    }
-    type SinkValue = fn(&SinkSnapshot) -> u64;
-    let per_sink: [(&str, &str, &str, SinkValue); 4] = [
-        (
-            "v2ce_sink_late_events_total",
-            "counter",
-            "Events sent after their due time (emission at event time).",
-            |k| k.stats.events_late,
-        ),
-        (
-            "v2ce_sink_sent_bytes_total",
-            "counter",
-            "Bytes sent or written per output.",
-            |k| k.stats.bytes_sent,
-        ),
-        (
-            "v2ce_sink_clients",
-            "gauge",
-            "Clients connected (TCP outputs).",
-            |k| k.stats.clients,
-        ),
-        (
-            "v2ce_sink_up",
-            "gauge",
-            "1 while the output works, 0 once it failed.",
-            |k| u64::from(k.failed.is_none()),
-        ),
-    ];
-    for (name, kind, help, value) in per_sink {
-        head(&mut out, name, kind, help);
-        for k in &s.sinks {
-            let _ = writeln!(out, "{name}{{sink=\"{}\"}} {}", label(&k.sink), value(k));
-        }
-    }
-    type QueueValue = fn(&QueueSnapshot) -> u64;
-    let per_queue: [(&str, &str, &str, QueueValue); 3] = [
-        (
-            "v2ce_queue_depth",
-            "gauge",
-            "Items waiting in each queue between stages.",
-            |q| q.depth as u64,
-        ),
-        (
-            "v2ce_queue_capacity",
-            "gauge",
-            "Capacity of each queue.",
-            |q| q.capacity as u64,
-        ),
-        (
-            "v2ce_queue_dropped_events_total",
-            "counter",
-            "Events in items a full queue evicted (drop-oldest).",
-            |q| q.dropped_events,
-        ),
-    ];
-    for (name, kind, help, value) in per_queue {
-        head(&mut out, name, kind, help);
-        for q in &s.queues {
-            let _ = writeln!(out, "{name}{{queue=\"{}\"}} {}", label(&q.name), value(q));
-        }
-    }
-    for (name, timing, help) in [
-        (
-            "v2ce_capture_lag_seconds",
-            Timing::CaptureLag,
-            "Lag of a frame's capture behind its own time.",
-        ),
-        (
-            "v2ce_processing_seconds",
-            Timing::Processing,
-            "From a frame's capture to its interval's events leaving Stage 2.",
-        ),
-        (
-            "v2ce_emission_seconds",
-            Timing::Emission,
-            "From a batch reaching an output to its last event having left.",
-        ),
-        (
-            "v2ce_latency_seconds",
-            Timing::Latency,
-            "From a frame's capture to its events having left, per output.",
-        ),
-    ] {
-        head(&mut out, name, "histogram", help);
-        let h = status.counters.histogram(timing, &BUCKETS_S);
-        for (le, count) in &h.buckets {
-            let _ = writeln!(out, "{name}_bucket{{le=\"{le}\"}} {count}");
-        }
-        let _ = writeln!(
-            out,
-            "{name}_bucket{{le=\"+Inf\"}} {}\n{name}_sum {}\n{name}_count {}",
-            h.count, h.sum_s, h.count
-        );
-    }
-    let s1 = status.counters.stage1();
-    head(
-        &mut out,
-        "v2ce_stage1_info",
-        "gauge",
-        "Stage 1's tier and preset (always 1).",
-    );
-    let _ = writeln!(
-        out,
-        "v2ce_stage1_info{{tier=\"{}\",preset=\"{}\"}} 1",
-        label(&status.tier),
-        label(&status.preset)
-    );
-    head(
-        &mut out,
-        "v2ce_stage1_windows_total",
-        "counter",
-        "Windows the learned tier ran, by result (run, skipped as still).",
-    );
-    let _ = writeln!(
-        out,
-        "v2ce_stage1_windows_total{{result=\"run\"}} {}\nv2ce_stage1_windows_total{{result=\"skipped\"}} {}",
-        s1.learned.windows, s1.learned.windows_skipped
-    );
-    head(
-        &mut out,
-        "v2ce_stage1_window_seconds",
-        "gauge",
-        "The learned tier's window latency, median so far.",
-    );
-    let _ = writeln!(
-        out,
-        "v2ce_stage1_window_seconds {}",
-        s1.learned.window_ms_p50 / 1e3
-    );
-    head(
-        &mut out,
-        "v2ce_stage1_tiles_total",
-        "counter",
-        "Tiles the pixel model updated or skipped as static.",
-    );
-    let _ = writeln!(
-        out,
-        "v2ce_stage1_tiles_total{{result=\"active\"}} {}\nv2ce_stage1_tiles_total{{result=\"skipped\"}} {}",
-        s1.physics.tiles_active, s1.physics.tiles_skipped
-    );
-    head(
-        &mut out,
-        "process_cpu_seconds_total",
-        "counter",
-        "User and system CPU time of the process.",
-    );
-    let _ = writeln!(out, "process_cpu_seconds_total {}", s.cpu_s);
-    head(
-        &mut out,
-        "process_resident_memory_bytes",
-        "gauge",
-        "Resident memory of the process.",
-    );
-    let _ = writeln!(out, "process_resident_memory_bytes {}", s.rss_kib * 1024);
-    head(
-        &mut out,
-        "v2ce_uptime_seconds",
-        "gauge",
-        "Seconds since the pipeline started.",
-    );
-    let _ = writeln!(out, "v2ce_uptime_seconds {}", s.uptime_s);
-    head(
-        &mut out,
-        "v2ce_ready",
-        "gauge",
-        "1 when /readyz answers 200.",
-    );
-    let _ = writeln!(out, "v2ce_ready {}", u8::from(status.readiness().is_ok()));
-    out
-}
-
 /// The preview page: one static document, no external assets.
-pub const PAGE: &str = include_str!("http_page.html");
+pub const PAGE: &str = include_str!("page.html");
 
 fn base64(data: &[u8]) -> String {
     use base64::Engine;
@@ -537,6 +294,7 @@ fn stream_events(request: tiny_http::Request, status: &Status, stop: &AtomicBool
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::pipeline::stats::Timing;
     use crate::sink::SinkStats;
 
     fn status() -> Status {
@@ -593,6 +351,9 @@ mod tests {
         );
         assert!(text.contains("v2ce_latency_seconds_count 2\n"), "{text}");
         assert!(text.contains("v2ce_stage1_info{tier=\"physics\",preset=\"davis346\"} 1"));
+        // Every tier's counters, whichever tier runs (zero before Stage 1 reports).
+        assert!(text.contains("v2ce_stage1_tiles_total{result=\"active\"} 0\n"));
+        assert!(text.contains("v2ce_stage1_windows_total{result=\"skipped\"} 0\n"));
         assert!(text.contains("v2ce_ready 1\n"), "{text}");
         // Every sample line belongs to a family declared before it.
         let mut declared = std::collections::HashSet::new();
