@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use clap::Args;
 
 use super::*;
-use crate::config::Config;
+use crate::batch::{self, Manifest};
 use crate::error::{Error, Result};
 
 /// The flags of `v2ce batch`.
@@ -52,38 +52,12 @@ pub struct BatchArgs {
 
 /// Runs `v2ce batch`: converts this task's shard, or merges the ledgers (`--report`).
 pub fn batch(args: BatchArgs) -> Result<()> {
-    use crate::batch::{self, Manifest, Shard};
     let format = args
         .encoding
         .format_for(Path::new(&format!("out.{}", args.format)))?;
     let extension = args.format.to_ascii_lowercase();
-    let print = |text: String| -> Result<()> {
-        let mut out = std::io::stdout().lock();
-        writeln!(out, "{text}").map_err(|e| Error::io("stdout", e))
-    };
     if let Some(dir) = &args.report {
-        let manifest = match &args.manifest {
-            Some(m) => Some(Manifest::load(m, &extension)?),
-            None => None,
-        };
-        let report = batch::report(dir, manifest.as_ref())?;
-        if args.json {
-            let mut v = serde_json::to_value(&report)
-                .map_err(|e| Error::invalid("report", e.to_string()))?;
-            v["frames_per_busy_s"] = report.frames_per_busy_s().into();
-            v["frames_per_s"] = report.frames_per_s().into();
-            print(v.to_string())?;
-        } else {
-            print(report.to_string().trim_end().to_string())?;
-        }
-        if !report.failed.is_empty() {
-            return Err(Error::Run(format!(
-                "{} of {} inputs failed",
-                report.failed.len(),
-                report.failed.len() + report.done
-            )));
-        }
-        return Ok(());
+        return report(&args, dir, &extension);
     }
     let (Some(spec), Some(out)) = (&args.manifest, &args.out) else {
         return Err(Error::invalid(
@@ -92,67 +66,45 @@ pub fn batch(args: BatchArgs) -> Result<()> {
         ));
     };
     let manifest = Manifest::load(spec, &extension)?;
-    let env = |k: &str| std::env::var(k).ok();
-    let shard = match &args.shard {
-        Some(s) => Shard::parse(s)?,
-        None => Shard::from_env(env, args.shards)?.unwrap_or(Shard::ALL),
-    };
-    let threads = args
-        .threads
-        .filter(|&t| t > 0)
-        .unwrap_or_else(|| batch::task_threads(env));
-    let (config, config_text) = match &args.config {
-        Some(path) => (
-            Config::load(path)?,
-            std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?,
-        ),
-        None => (Config::default(), String::new()),
-    };
-    let options = batch::Options {
-        out: out.clone(),
+    let flags = batch::Flags {
+        out,
         format,
-        config,
-        config_text,
-        shard,
-        jobs: args.jobs.filter(|&j| j > 0).unwrap_or(threads),
-        threads,
+        shard: args.shard.as_deref(),
+        shards: args.shards,
+        threads: args.threads,
+        jobs: args.jobs,
+        config: args.config.as_deref(),
     };
+    let options = batch::Options::from_flags(&flags, |k| std::env::var(k).ok())?;
     let stop = crate::daemon::stop_on_signals()?;
-    eprintln!(
-        "v2ce batch: shard {shard} of {} inputs into {} ({threads} threads, {} at once)",
-        manifest.items.len(),
-        out.display(),
-        options.jobs.min(manifest.items.len())
-    );
+    eprintln!("v2ce batch: {}", options.describe(&manifest));
     let log = |line: &str| eprintln!("v2ce batch: {line}");
     let summary = batch::run(&manifest, &options, &stop, &log)?;
-    let line = format!(
-        "shard {shard}: {} items, {} converted, {} skipped (done before), {} failed; {} frames, \
-         {} events in {:.1} s ({:.1} frames/s)",
-        summary.items,
-        summary.converted,
-        summary.skipped,
-        summary.failed.len(),
-        summary.frames,
-        summary.events,
-        summary.wall_s,
-        summary.frames as f64 / summary.wall_s.max(1e-9)
-    );
     if args.json {
-        print(
-            serde_json::to_string(&summary)
-                .map_err(|e| Error::invalid("summary", e.to_string()))?,
-        )?;
+        print(&summary.to_json()?)?;
     }
-    eprintln!("v2ce batch: {line}");
-    if !summary.failed.is_empty() {
-        return Err(Error::Run(format!(
-            "{} of {} inputs of shard {shard} failed (first: {}: {})",
-            summary.failed.len(),
-            summary.items,
-            summary.failed[0].0,
-            summary.failed[0].1
-        )));
+    eprintln!("v2ce batch: {summary}");
+    summary.check()
+}
+
+/// `v2ce batch --report DIR`: the ledgers in `dir` merged, with the manifest's inputs not yet
+/// converted as pending.
+fn report(args: &BatchArgs, dir: &Path, extension: &str) -> Result<()> {
+    let manifest = match &args.manifest {
+        Some(m) => Some(Manifest::load(m, extension)?),
+        None => None,
+    };
+    let report = batch::report(dir, manifest.as_ref())?;
+    if args.json {
+        print(&report.to_json()?)?;
+    } else {
+        print(report.to_string().trim_end())?;
     }
-    Ok(())
+    report.check()
+}
+
+/// Writes `text` and a newline to stdout.
+fn print(text: &str) -> Result<()> {
+    let mut out = std::io::stdout().lock();
+    writeln!(out, "{text}").map_err(|e| Error::io("stdout", e))
 }
