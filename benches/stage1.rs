@@ -137,19 +137,8 @@ fn ours(w: &Workload) -> (f64, usize) {
 
 /// Writes an `.npy` of uint8 frames `[N, H, W]`.
 fn write_npy(path: &Path, w: &Workload) -> std::io::Result<()> {
-    let mut header = format!(
-        "{{'descr': '|u1', 'fortran_order': False, 'shape': ({}, {}, {}), }}",
-        w.pixels.len(),
-        w.height,
-        w.width
-    );
-    while (10 + header.len() + 1) % 64 != 0 {
-        header.push(' ');
-    }
-    header.push('\n');
-    let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
-    bytes.extend_from_slice(&(header.len() as u16).to_le_bytes());
-    bytes.extend_from_slice(header.as_bytes());
+    let shape = format!("({}, {}, {})", w.pixels.len(), w.height, w.width);
+    let mut bytes = v2ce::format::npz::npy_header("'|u1'", &shape, 0);
     for p in &w.pixels {
         bytes.extend_from_slice(p);
     }

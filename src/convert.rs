@@ -12,7 +12,7 @@ use crate::frame::FrameSource;
 use crate::pipeline::queue::QueuePolicy;
 use crate::pipeline::{self, Options, Source, Stages};
 use crate::sink::Sink;
-use crate::stage1::{Stage1, Stage1Stats};
+use crate::stage1::{Stage1, Stage1Stats, Tap, Tapped};
 use crate::stage2::SampleStats;
 
 /// What a conversion did.
@@ -166,7 +166,7 @@ pub fn convert_file(
     let output = crate::format::PartialOutput::new(&job.output);
     let sink = crate::sink::file::FileSink::create(output.writing(), job.format, w, h)?;
     if let Some(path) = &job.write_voxels {
-        stage1 = Box::new(VoxelTap::new(stage1, path)?);
+        stage1 = Box::new(Tapped::new(stage1, VoxelTap::new(path)?));
     }
     let sinks: Vec<Box<dyn Sink>> = vec![Box::new(sink)];
     let report = convert(source, stage1, config, sinks, job.max_frames, stop, |r| {
@@ -183,7 +183,7 @@ pub fn convert_file(
     Ok(report)
 }
 
-/// A Stage 1 that also writes every voxel it hands on to a `.npy` file: float32
+/// A [`Tap`] that writes every voxel its tier hands on to a `.npy` file: float32
 /// `(intervals, 2*C, H, W)` in V2CE's channel layout (`polarity * C + node`, ON first), one
 /// interval after the other as they are made. The file is written under a temporary name
 /// (`.npy.partial`); at the end of the stream its header gets the interval count and it is
@@ -191,7 +191,6 @@ pub fn convert_file(
 /// removed). Ctrl-C ends the stream early: like the event file, it then holds everything
 /// converted so far.
 pub struct VoxelTap {
-    inner: Box<dyn Stage1>,
     path: std::path::PathBuf,
     partial: std::path::PathBuf,
     file: std::io::BufWriter<std::fs::File>,
@@ -205,21 +204,13 @@ pub struct VoxelTap {
 const NPY_HEADER: usize = 128;
 
 fn npy_header(intervals: usize, channels: usize, height: u16, width: u16) -> Vec<u8> {
-    let dict = format!(
-        "{{'descr': '<f4', 'fortran_order': False, 'shape': ({intervals}, {channels}, {height}, {width}), }}"
-    );
-    let mut h = b"\x93NUMPY\x01\x00".to_vec();
-    let len = NPY_HEADER - 10;
-    h.extend_from_slice(&(len as u16).to_le_bytes());
-    h.extend_from_slice(dict.as_bytes());
-    h.resize(NPY_HEADER - 1, b' ');
-    h.push(b'\n');
-    h
+    let shape = format!("({intervals}, {channels}, {height}, {width})");
+    crate::format::npz::npy_header("'<f4'", &shape, NPY_HEADER)
 }
 
 impl VoxelTap {
-    /// Wraps `inner`; the voxels go to `path`.
-    pub fn new(inner: Box<dyn Stage1>, path: &std::path::Path) -> Result<Self> {
+    /// A tap writing to `path`.
+    pub fn new(path: &std::path::Path) -> Result<Self> {
         use std::io::Write;
         let partial = path.with_extension("npy.partial");
         let file = std::fs::File::create(&partial).map_err(|e| Error::io(&partial, e))?;
@@ -229,7 +220,6 @@ impl VoxelTap {
             return Err(Error::io(&partial, e));
         }
         Ok(VoxelTap {
-            inner,
             path: path.to_path_buf(),
             partial,
             file,
@@ -301,43 +291,18 @@ impl Drop for VoxelTap {
     }
 }
 
-impl Stage1 for VoxelTap {
-    fn push(
-        &mut self,
-        frame: &crate::frame::Frame,
-        out: &mut Vec<crate::stage1::Stage1Batch>,
-    ) -> Result<()> {
-        let from = out.len();
-        self.inner.push(frame, out)?;
-        self.write(&out[from..])
+impl Tap for VoxelTap {
+    fn batches(&mut self, batches: &[crate::stage1::Stage1Batch]) -> Result<()> {
+        self.write(batches)
     }
 
     /// The end of the stream or a break in it: the file is complete up to here (a later
     /// interval goes on after it and rewrites the header).
-    fn finish(&mut self, out: &mut Vec<crate::stage1::Stage1Batch>) -> Result<()> {
-        let from = out.len();
-        self.inner.finish(out)?;
-        self.write(&out[from..])?;
+    fn finished(&mut self) -> Result<()> {
         self.complete()
     }
 
-    fn restart(&mut self) -> Result<()> {
-        self.inner.restart()
-    }
-
-    fn output_size(&self) -> (u16, u16) {
-        self.inner.output_size()
-    }
-
-    fn stats(&self) -> Stage1Stats {
-        self.inner.stats()
-    }
-
-    fn describe(&self) -> String {
-        format!(
-            "{}, voxels to {}",
-            self.inner.describe(),
-            self.path.display()
-        )
+    fn describe(&self, tier: String) -> String {
+        format!("{tier}, voxels to {}", self.path.display())
     }
 }

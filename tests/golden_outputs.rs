@@ -88,6 +88,12 @@ const CASES: &[Case] = &[
         "convert {F} -o {O} --compression zstd --mode voxels --sampler random --seed 9 --max-frames 30",
         "a.aedat4",
     ),
+    // convert --write-voxels: the voxels Stage 1 hands to Stage 2, as .npy.
+    case(
+        "convert-fixture-write-voxels-npy",
+        "convert {F} -o {O}.csv --write-voxels {O} --mode voxels --max-frames 12",
+        "a.npy",
+    ),
     // convert: the real recording's APS frames and its IJRR image folder.
     data_case(
         "convert-davis346-aedat4",
@@ -201,6 +207,12 @@ const CASES: &[Case] = &[
         "run-fixture-learned-stride4-csv",
         "run --source {F} --udp= --out {O} --queue-policy block --replay-speed 1000 --stage1 learned --threads 2 --device cpu --stride 4 --size 320x240 --max-frames 30",
         "a.csv",
+        false,
+    ),
+    learned_case(
+        "convert-fixture-learned-write-voxels-npy",
+        "convert {F} -o {O}.csv --write-voxels {O} --stage1 learned --threads 2 --device cpu --size 160x120 --max-frames 20",
+        "a.npy",
         false,
     ),
     // HDF5 (DSEC layout).

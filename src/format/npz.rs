@@ -28,17 +28,18 @@ fn bad(message: impl Into<String>) -> Error {
     Error::invalid("NPZ", message.into())
 }
 
-/// The `.npy` header (format 1.0, padded to a multiple of 64) for `n` records.
-fn npy_header(n: u64) -> Vec<u8> {
-    header_with(DESCR, &format!("({n},)"))
+/// The `.npy` header of the event records for `n` records.
+fn records_header(n: u64) -> Vec<u8> {
+    npy_header(DESCR, &format!("({n},)"), 0)
 }
 
-/// A `.npy` 1.0 header for an array of type `descr` (NumPy's spelling) and `shape` (a Python
-/// tuple), padded to a multiple of 64 bytes.
-fn header_with(descr: &str, shape: &str) -> Vec<u8> {
+/// A `.npy` 1.0 header for an array of type `descr` (NumPy's spelling, quoted, e.g. `'<f4'`)
+/// and `shape` (a Python tuple), padded with spaces to a multiple of 64 bytes and to at least
+/// `at_least` bytes (room to rewrite it in place with a larger shape).
+pub fn npy_header(descr: &str, shape: &str, at_least: usize) -> Vec<u8> {
     let dict = format!("{{'descr': {descr}, 'fortran_order': False, 'shape': {shape}, }}");
     let unpadded = 10 + dict.len() + 1;
-    let total = unpadded.div_ceil(64) * 64;
+    let total = unpadded.div_ceil(64).max(at_least.div_ceil(64)) * 64;
     let mut h = b"\x93NUMPY\x01\x00".to_vec();
     h.extend_from_slice(&((total - 10) as u16).to_le_bytes());
     h.extend_from_slice(dict.as_bytes());
@@ -87,7 +88,7 @@ pub fn write_arrays(path: &Path, arrays: &[Array], compressed: bool) -> Result<(
             .large_file(a.data.len() as u64 > u32::MAX as u64 / 2);
         zip.start_file(format!("{}.npy", a.name), options)
             .map_err(zerr)?;
-        zip.write_all(&header_with(a.descr, &shape))
+        zip.write_all(&npy_header(a.descr, &shape, 0))
             .and_then(|_| zip.write_all(a.data))
             .map_err(|e| Error::io(&tmp, e))?;
     }
@@ -164,7 +165,7 @@ impl<W: Write + Seek> EventEncoder for Encoder<W> {
         let zerr = |e: zip::result::ZipError| bad(e.to_string());
         zip.start_file(format!("{ARRAY}.npy"), options)
             .map_err(zerr)?;
-        zip.write_all(&npy_header(self.count))
+        zip.write_all(&records_header(self.count))
             .map_err(|e| bad(e.to_string()))?;
         std::io::copy(&mut records, &mut zip).map_err(|e| bad(e.to_string()))?;
         let mut out = zip.finish().map_err(zerr)?;
@@ -319,7 +320,7 @@ mod tests {
     #[test]
     fn headers_are_numpy_format_1_0() {
         for n in [0, 7, 123_456_789_012] {
-            let h = npy_header(n);
+            let h = records_header(n);
             assert_eq!(h.len() % 64, 0);
             assert_eq!(u16::from_le_bytes([h[8], h[9]]) as usize, h.len() - 10);
             assert_eq!(*h.last().unwrap(), b'\n');

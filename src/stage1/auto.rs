@@ -20,11 +20,7 @@ use std::time::Instant;
 
 use crate::error::Result;
 
-use crate::frame::Frame;
-
-use super::{
-    LearnedStage1, PhysicsStage1, SourceEncoding, Stage1, Stage1Batch, Stage1Config, Stage1Stats,
-};
+use super::{LearnedStage1, PhysicsStage1, SourceEncoding, Stage1, Stage1Config, Tap, Tapped};
 
 /// Frame pairs of the timing runs.
 pub const PROBE_PAIRS: usize = 4;
@@ -107,42 +103,13 @@ pub fn build(
         Some(l) if choice.learned => Box::new(l),
         _ => Box::new(PhysicsStage1::new(config, bins, size)?),
     };
-    Ok(Box::new(Chosen { inner, choice }))
+    Ok(Box::new(Tapped::new(inner, choice)))
 }
 
-/// The chosen tier, described with the reason it was chosen.
-struct Chosen {
-    inner: Box<dyn Stage1>,
-    choice: Choice,
-}
-
-impl Stage1 for Chosen {
-    fn push(&mut self, frame: &Frame, out: &mut Vec<Stage1Batch>) -> Result<()> {
-        self.inner.push(frame, out)
-    }
-
-    fn finish(&mut self, out: &mut Vec<Stage1Batch>) -> Result<()> {
-        self.inner.finish(out)
-    }
-
-    fn restart(&mut self) -> Result<()> {
-        self.inner.restart()
-    }
-
-    fn output_size(&self) -> (u16, u16) {
-        self.inner.output_size()
-    }
-
-    fn stats(&self) -> Stage1Stats {
-        self.inner.stats()
-    }
-
-    fn describe(&self) -> String {
-        format!(
-            "{}, chosen by auto: {}",
-            self.inner.describe(),
-            self.choice.reason
-        )
+/// The reason `auto` chose the tier, added to its description.
+impl Tap for Choice {
+    fn describe(&self, tier: String) -> String {
+        format!("{tier}, chosen by auto: {}", self.reason)
     }
 }
 

@@ -210,6 +210,70 @@ pub trait Stage1: Send {
     fn describe(&self) -> String;
 }
 
+/// What a wrapper adds to the tier it wraps (see [`Tapped`]): a look at each batch the tier
+/// hands on, a step at the end of the stream, and words for [`Stage1::describe`]. Everything
+/// else goes to the tier as it is.
+pub trait Tap: Send {
+    /// Sees the batches the tier just handed on.
+    fn batches(&mut self, _batches: &[Stage1Batch]) -> Result<()> {
+        Ok(())
+    }
+
+    /// The end of the stream (or a break in it), after the tier's own [`Stage1::finish`].
+    fn finished(&mut self) -> Result<()> {
+        Ok(())
+    }
+
+    /// How the wrapped tier is described, given the tier's own words.
+    fn describe(&self, tier: String) -> String {
+        tier
+    }
+}
+
+/// A tier with a [`Tap`] on it: itself a [`Stage1`].
+pub struct Tapped<T: Tap> {
+    tier: Box<dyn Stage1>,
+    tap: T,
+}
+
+impl<T: Tap> Tapped<T> {
+    /// `tier` with `tap` on it.
+    pub fn new(tier: Box<dyn Stage1>, tap: T) -> Self {
+        Tapped { tier, tap }
+    }
+}
+
+impl<T: Tap> Stage1 for Tapped<T> {
+    fn push(&mut self, frame: &Frame, out: &mut Vec<Stage1Batch>) -> Result<()> {
+        let from = out.len();
+        self.tier.push(frame, out)?;
+        self.tap.batches(&out[from..])
+    }
+
+    fn finish(&mut self, out: &mut Vec<Stage1Batch>) -> Result<()> {
+        let from = out.len();
+        self.tier.finish(out)?;
+        self.tap.batches(&out[from..])?;
+        self.tap.finished()
+    }
+
+    fn restart(&mut self) -> Result<()> {
+        self.tier.restart()
+    }
+
+    fn output_size(&self) -> (u16, u16) {
+        self.tier.output_size()
+    }
+
+    fn stats(&self) -> Stage1Stats {
+        self.tier.stats()
+    }
+
+    fn describe(&self) -> String {
+        self.tap.describe(self.tier.describe())
+    }
+}
+
 /// The Stage 1 tiers.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, Serialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
