@@ -14,10 +14,10 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use v2ce::event::Event;
-use v2ce::sink::udp::{UdpConfig, UdpFormat, UdpSink};
+use v2ce::sink::udp::{EmitMode, UdpFormat, UdpSink, UdpSinkConfig};
 use v2ce::sink::Sink;
 
-fn run(format: UdpFormat, events: &[Event], pace: Option<f64>) {
+fn run(format: UdpFormat, events: &[Event], pace: u32) {
     let rx = UdpSocket::bind("127.0.0.1:0").expect("bind receiver");
     rx.set_read_timeout(Some(Duration::from_millis(50)))
         .expect("timeout");
@@ -36,9 +36,15 @@ fn run(format: UdpFormat, events: &[Event], pace: Option<f64>) {
             }
         })
     };
-    let mut config = UdpConfig::new(&addr.to_string(), format);
-    config.max_datagrams_per_s = pace;
-    let mut sink = UdpSink::new(config).expect("sink");
+    let config = UdpSinkConfig {
+        address: addr.to_string(),
+        format,
+        payload: 1472,
+        rate: pace,
+        emit: EmitMode::Asap,
+        ..UdpSinkConfig::default()
+    };
+    let mut sink = UdpSink::new(&config, 1.0).expect("sink");
     let started = Instant::now();
     for chunk in events.chunks(4096) {
         sink.send(chunk).expect("send");
@@ -52,7 +58,11 @@ fn run(format: UdpFormat, events: &[Event], pace: Option<f64>) {
     println!(
         "| {} | {} | {:.2} | {:.0} | {:.1} | {:.2}% |",
         format.name(),
-        pace.map_or("none".to_string(), |p| format!("{p:.0}/s")),
+        if pace == 0 {
+            "none".to_string()
+        } else {
+            format!("{pace}/s")
+        },
         s.events_sent as f64 / secs / 1e6,
         s.messages_sent as f64 / secs,
         s.bytes_sent as f64 / secs / 1e6,
@@ -88,13 +98,9 @@ fn main() {
         UdpFormat::T64X16Y16On8,
         UdpFormat::T32X16Y15On1,
     ] {
-        run(format, &events, None);
+        run(format, &events, 0);
     }
-    for pace in [50_000.0, 20_000.0] {
-        run(
-            UdpFormat::T64X16Y16On8,
-            &events[..n.min(2_000_000)],
-            Some(pace),
-        );
+    for pace in [50_000, 20_000] {
+        run(UdpFormat::T64X16Y16On8, &events[..n.min(2_000_000)], pace);
     }
 }

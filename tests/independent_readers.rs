@@ -169,7 +169,7 @@ fn our_decoders_agree_with_faery_on_every_recording() {
 #[test]
 fn faery_and_a_spif_decoder_receive_what_our_udp_sink_sends() {
     let _one_at_a_time = one_at_a_time();
-    use v2ce::sink::udp::{UdpConfig, UdpFormat, UdpSink};
+    use v2ce::sink::udp::{EmitMode, UdpFormat, UdpSink, UdpSinkConfig};
     use v2ce::sink::Sink;
     let py = python_or_skip!("faery_and_a_spif_decoder_receive_what_our_udp_sink_sends");
     let dir = temp_dir("udp");
@@ -198,10 +198,16 @@ fn faery_and_a_spif_decoder_receive_what_our_udp_sink_sends() {
                 h.to_string(),
             ],
         );
-        let mut config = UdpConfig::new(&format!("127.0.0.1:{port}"), format);
-        // Paced so a Python receiver on a shared 2-core machine keeps up.
-        config.max_datagrams_per_s = Some(1_000.0);
-        let mut sink = UdpSink::new(config).unwrap();
+        let config = UdpSinkConfig {
+            address: format!("127.0.0.1:{port}"),
+            format,
+            payload: 1472,
+            // Paced so a Python receiver on a shared 2-core machine keeps up.
+            rate: 1_000,
+            emit: EmitMode::Asap,
+            ..UdpSinkConfig::default()
+        };
+        let mut sink = UdpSink::new(&config, 1.0).unwrap();
         for chunk in events.chunks(1000) {
             sink.send(chunk).unwrap();
         }

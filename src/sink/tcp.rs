@@ -125,20 +125,20 @@ impl TcpSinkConfig {
 
     /// Starts listening.
     pub fn build(&self, context: &SinkContext) -> Result<Box<dyn Sink>> {
-        let mut c = TcpConfig::new(&self.address, context.width, context.height);
-        c.format = self.format;
-        c.max_clients = self.max_clients;
+        let c = TcpConfig {
+            sink: self.clone(),
+            ..TcpConfig::new(&self.address, context.width, context.height)
+        };
         Ok(Box::new(TcpSink::new(c)?))
     }
 }
 
-/// Settings of a [`TcpSink`].
+/// Settings of a [`TcpSink`]: the output's configuration, the sensor it serves, and how
+/// patient it is with clients.
 #[derive(Debug, Clone, PartialEq)]
 pub struct TcpConfig {
-    /// Address to listen on, `host:port` (port 0 picks a free one).
-    pub address: String,
-    /// The byte stream clients receive.
-    pub format: TcpFormat,
+    /// The output as configured (address, format, client cap).
+    pub sink: TcpSinkConfig,
     /// Sensor size announced in the header.
     pub size: (u16, u16),
     /// Batches each client may have waiting.
@@ -147,8 +147,6 @@ pub struct TcpConfig {
     pub max_skipped: u64,
     /// A write to a client that blocks this long disconnects it.
     pub write_timeout: Duration,
-    /// Clients served at once; more are refused.
-    pub max_clients: usize,
     /// How long `finish` waits for clients before cutting them off.
     pub finish_deadline: Duration,
 }
@@ -158,13 +156,15 @@ impl TcpConfig {
     /// batches per client, disconnect after 1024 skipped in a row or a write stalled for 2 s.
     pub fn new(address: &str, width: u16, height: u16) -> Self {
         TcpConfig {
-            address: address.to_string(),
-            format: TcpFormat::Aedat4,
+            sink: TcpSinkConfig {
+                address: address.to_string(),
+                format: TcpFormat::Aedat4,
+                max_clients: DEFAULT_MAX_CLIENTS,
+            },
             size: (width, height),
             queue_packets: 256,
             max_skipped: 1024,
             write_timeout: Duration::from_secs(2),
-            max_clients: DEFAULT_MAX_CLIENTS,
             finish_deadline: FINISH_DEADLINE,
         }
     }
@@ -270,19 +270,20 @@ fn bad(m: String) -> Error {
 }
 
 impl TcpSink {
-    /// Listens on `config.address`; clients may connect from now on.
+    /// Listens on `config.sink.address`; clients may connect from now on.
     pub fn new(config: TcpConfig) -> Result<Self> {
         // Checks the size against the format.
-        ClientEncoder::new(config.format, config.size)?;
+        ClientEncoder::new(config.sink.format, config.size)?;
         if config.queue_packets == 0 {
             return Err(bad("queue_packets must be at least 1".into()));
         }
         let addr = config
+            .sink
             .address
             .to_socket_addrs()
-            .map_err(|e| bad(format!("{}: {e}", config.address)))?
+            .map_err(|e| bad(format!("{}: {e}", config.sink.address)))?
             .next()
-            .ok_or_else(|| bad(format!("{} resolves to no address", config.address)))?;
+            .ok_or_else(|| bad(format!("{} resolves to no address", config.sink.address)))?;
         let listener =
             TcpListener::bind(addr).map_err(|e| bad(format!("cannot listen on {addr}: {e}")))?;
         let local = listener.local_addr().map_err(|e| bad(e.to_string()))?;
@@ -296,7 +297,7 @@ impl TcpSink {
         let acceptor = {
             let accept = Acceptor {
                 listener,
-                format: config.format,
+                format: config.sink.format,
                 size: config.size,
                 clients: clients.clone(),
                 stop: stop.clone(),
@@ -304,7 +305,7 @@ impl TcpSink {
                 refused: refused.clone(),
                 queue: config.queue_packets,
                 timeout: config.write_timeout,
-                max_clients: config.max_clients,
+                max_clients: config.sink.max_clients,
             };
             std::thread::Builder::new()
                 .name("v2ce-tcp-accept".into())
@@ -441,7 +442,11 @@ fn serve(
 
 impl Sink for TcpSink {
     fn describe(&self) -> String {
-        format!("tcp {} ({})", self.local, self.config.format.long_name())
+        format!(
+            "tcp {} ({})",
+            self.local,
+            self.config.sink.format.long_name()
+        )
     }
 
     fn send(&mut self, events: &[Event]) -> Result<()> {
@@ -451,7 +456,7 @@ impl Sink for TcpSink {
             format::check_event(e, self.last_t, w, h)?;
             self.last_t = e.t;
         }
-        for chunk in events.chunks(self.config.format.batch_events()) {
+        for chunk in events.chunks(self.config.sink.format.batch_events()) {
             let batch: Arc<[Event]> = Arc::from(chunk);
             let mut delivered = false;
             let max_skipped = self.config.max_skipped;
@@ -632,7 +637,7 @@ mod tests {
     #[test]
     fn clients_over_the_cap_are_refused_and_counted_and_the_port_stays_open() {
         let mut config = TcpConfig::new("127.0.0.1:0", 64, 48);
-        config.max_clients = 1;
+        config.sink.max_clients = 1;
         let mut sink = TcpSink::new(config).unwrap();
         let addr = sink.local_addr();
         let first = TcpStream::connect(addr).unwrap();
@@ -764,7 +769,7 @@ mod tests {
             (TcpFormat::Evt3, Format::Evt3),
         ] {
             let mut config = TcpConfig::new("127.0.0.1:0", 64, 48);
-            config.format = format;
+            config.sink.format = format;
             let mut sink = TcpSink::new(config).unwrap();
             let path = dir.join(format!("{}.raw", format.name()));
             let mut file = FileSink::create(&path, file_format, 64, 48).unwrap();
@@ -822,7 +827,7 @@ mod tests {
     #[test]
     fn a_raw_client_without_events_still_gets_a_header() {
         let mut config = TcpConfig::new("127.0.0.1:0", 64, 48);
-        config.format = TcpFormat::Evt2;
+        config.sink.format = TcpFormat::Evt2;
         let mut sink = TcpSink::new(config).unwrap();
         let c = TcpStream::connect(sink.local_addr()).unwrap();
         let c = std::thread::spawn(move || read_to_end(c));
@@ -840,7 +845,7 @@ mod tests {
     #[test]
     fn a_size_the_format_cannot_hold_is_refused() {
         let mut config = TcpConfig::new("127.0.0.1:0", 4096, 48);
-        config.format = TcpFormat::Evt3;
+        config.sink.format = TcpFormat::Evt3;
         assert!(TcpSink::new(config).is_err());
     }
 }

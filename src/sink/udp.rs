@@ -1,13 +1,13 @@
 //! Events as UDP datagrams, in the word formats that neuromorphic receivers listen for.
 //!
 //! The word layouts are [`crate::format::datagram`]'s; datagrams hold whole events, at most
-//! `max_payload` bytes (1472 by default: a 1500-byte Ethernet MTU less the IPv4 and UDP headers),
-//! so no datagram is fragmented.
+//! `payload` bytes (512 by default, which every common receiver reads whole; at most 1472 stays
+//! within a 1500-byte Ethernet MTU less the IPv4 and UDP headers, so no datagram is fragmented).
 //!
 //! The socket is non-blocking: a datagram the kernel cannot take at once is dropped and counted,
 //! and a receiver that is gone (ICMP port unreachable) costs nothing but the count, so the
 //! caller never waits on a receiver. Datagrams leave either as fast as the kernel takes them
-//! ([`Emission::Asap`]) or each event at its own time ([`Emission::EventTime`], the daemon's
+//! ([`EmitMode::Asap`]) or each event at its own time ([`EmitMode::EventTime`], the daemon's
 //! default: a datagram holds the events due within one `slice` and leaves when the last of them
 //! is due, so none arrives early; see [`super::emit`]). The sending thread wakes
 //! `WAKE_GRACE` (0.2 ms) after a datagram is due and sends every datagram due by then, and runs at
@@ -124,45 +124,10 @@ impl UdpSinkConfig {
         Ok(())
     }
 
-    /// The sink's settings for frames whose times run `speed` times faster than the wall clock.
-    pub fn settings(&self, speed: f64) -> UdpConfig {
-        let mut c = UdpConfig::new(&self.address, self.format);
-        c.max_datagrams_per_s = (self.rate > 0).then_some(f64::from(self.rate));
-        c.max_payload = self.payload;
-        c.realtime_priority = self.emit_priority;
-        c.emission = match self.emit {
-            EmitMode::Asap => Emission::Asap,
-            EmitMode::EventTime => Emission::EventTime {
-                delay: Duration::from_secs_f64(self.emit_delay_ms / 1e3),
-                slice: Duration::from_secs_f64(self.emit_slice_ms / 1e3),
-                speed,
-            },
-        };
-        c
-    }
-
     /// Opens the socket.
     pub fn build(&self, context: &SinkContext) -> Result<Box<dyn Sink>> {
-        Ok(Box::new(UdpSink::new(self.settings(context.speed))?))
+        Ok(Box::new(UdpSink::new(self, context.speed)?))
     }
-}
-
-/// When events leave.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum Emission {
-    /// As fast as the socket takes them: a frame interval's events in one burst.
-    Asap,
-    /// Each event at its own time plus `delay`, the frames' times running `speed` times faster
-    /// than the wall clock; a datagram closes when full or when it would span more than
-    /// `slice`.
-    EventTime {
-        /// Behind the frames (see [`EmitClock`]).
-        delay: Duration,
-        /// Longest spread of due times in one datagram.
-        slice: Duration,
-        /// Replay speed (1 for a camera).
-        speed: f64,
-    },
 }
 
 /// Waits until `due`: sleeps, then spins the last `spin` of it, so a datagram never leaves
@@ -253,44 +218,9 @@ pub(crate) fn set_socket_buffer(socket: &UdpSocket, option: libc::c_int, bytes: 
     now.max(0) as usize
 }
 
-/// Settings of a [`UdpSink`].
-#[derive(Debug, Clone, PartialEq)]
-pub struct UdpConfig {
-    /// Receiver address, `host:port`.
-    pub address: String,
-    /// Datagram format.
-    pub format: UdpFormat,
-    /// Largest datagram payload in bytes.
-    pub max_payload: usize,
-    /// Pacing: at most this many datagrams per second (`None`: as fast as the kernel takes them).
-    pub max_datagrams_per_s: Option<f64>,
-    /// When events leave.
-    pub emission: Emission,
-    /// Realtime (`SCHED_FIFO`) priority of the sending thread at event time, 1..=99 (0: normal
-    /// scheduling); see [`Emission::EventTime`].
-    pub realtime_priority: u8,
-}
-
-impl UdpConfig {
-    /// The default payload limit: 1500-byte MTU less 20 (IPv4) and 8 (UDP) header bytes.
-    pub const DEFAULT_PAYLOAD: usize = 1472;
-
-    /// Settings for `address` and `format` with the default payload and no pacing.
-    pub fn new(address: &str, format: UdpFormat) -> Self {
-        UdpConfig {
-            address: address.to_string(),
-            format,
-            max_payload: Self::DEFAULT_PAYLOAD,
-            max_datagrams_per_s: None,
-            emission: Emission::Asap,
-            realtime_priority: 0,
-        }
-    }
-}
-
 /// Sends events as UDP datagrams.
 pub struct UdpSink {
-    config: UdpConfig,
+    config: UdpSinkConfig,
     socket: UdpSocket,
     target: SocketAddr,
     per_datagram: usize,
@@ -312,8 +242,10 @@ pub struct UdpSink {
 }
 
 impl UdpSink {
-    /// Opens a non-blocking socket for `config`.
-    pub fn new(config: UdpConfig) -> Result<Self> {
+    /// Opens a non-blocking socket for `config`, for frames whose times run `speed` times
+    /// faster than the wall clock (a file's replay speed; 1 for a camera).
+    pub fn new(config: &UdpSinkConfig, speed: f64) -> Result<Self> {
+        config.validate()?;
         let bad = |m: String| Error::invalid("UDP sink", m);
         let target = config
             .address
@@ -321,19 +253,9 @@ impl UdpSink {
             .map_err(|e| bad(format!("{}: {e}", config.address)))?
             .next()
             .ok_or_else(|| bad(format!("{} resolves to no address", config.address)))?;
-        let per_datagram = config.max_payload / config.format.event_bytes();
-        if per_datagram == 0 || config.max_payload > 65_507 {
-            return Err(bad(format!(
-                "max payload {} bytes must hold one {}-byte event and fit a datagram (65507)",
-                config.max_payload,
-                config.format.event_bytes()
-            )));
-        }
-        let interval = match config.max_datagrams_per_s {
-            Some(r) if r.is_finite() && r > 0.0 => Some(Duration::from_secs_f64(1.0 / r)),
-            Some(r) => return Err(bad(format!("pacing {r} datagrams/s must be positive"))),
-            None => None,
-        };
+        let per_datagram = config.payload / config.format.event_bytes();
+        let interval =
+            (config.rate > 0).then(|| Duration::from_secs_f64(1.0 / f64::from(config.rate)));
         let local: SocketAddr = if target.is_ipv4() {
             "0.0.0.0:0"
         } else {
@@ -341,16 +263,14 @@ impl UdpSink {
         }
         .parse()
         .map_err(|e| bad(format!("{e}")))?;
-        let clock = match config.emission {
-            Emission::Asap => None,
-            Emission::EventTime {
-                delay,
-                slice,
-                speed,
-            } => {
+        let clock = match config.emit {
+            EmitMode::Asap => None,
+            EmitMode::EventTime => {
                 if !(speed.is_finite() && speed > 0.0) {
                     return Err(bad(format!("replay speed {speed} must be positive")));
                 }
+                let delay = Duration::from_secs_f64(config.emit_delay_ms / 1e3);
+                let slice = Duration::from_secs_f64(config.emit_slice_ms / 1e3);
                 Some((EmitClock::new(delay, speed), slice))
             }
         };
@@ -363,11 +283,12 @@ impl UdpSink {
         socket
             .connect(target)
             .map_err(|e| bad(format!("{target}: {e}")))?;
-        if let Some(rate) = config.max_datagrams_per_s {
+        if config.rate > 0 {
+            let rate = f64::from(config.rate);
             // Room for a tenth of a second at the configured rate (each datagram costs its
             // payload and about 700 bytes of kernel bookkeeping), so a paced stream never
             // finds the buffer full while the link drains it.
-            let want = (rate * 0.1 * (config.max_payload + 700) as f64).min(64e6) as usize;
+            let want = (rate * 0.1 * (config.payload + 700) as f64).min(64e6) as usize;
             let got = set_socket_buffer(&socket, libc::SO_SNDBUF, want);
             if got < want {
                 tracing::warn!(
@@ -377,7 +298,7 @@ impl UdpSink {
         }
         Ok(UdpSink {
             per_datagram,
-            buf: Vec::with_capacity(config.max_payload),
+            buf: Vec::with_capacity(config.payload),
             next_slot: Instant::now(),
             interval,
             clock,
@@ -385,7 +306,7 @@ impl UdpSink {
             woke: None,
             previous_due: None,
             catchup: None,
-            config,
+            config: config.clone(),
             socket,
             target,
             stats: SinkStats::default(),
@@ -446,7 +367,7 @@ impl Sink for UdpSink {
             "udp {} ({}, {} B datagrams, {when})",
             self.target,
             self.config.format.name(),
-            self.config.max_payload
+            self.config.payload
         )
     }
 
@@ -474,7 +395,7 @@ impl Sink for UdpSink {
             Some(spin) => spin,
             None => {
                 // The sending thread is the one that waits: set it up once, from it.
-                let realtime = emission_thread(self.config.realtime_priority);
+                let realtime = emission_thread(self.config.emit_priority);
                 *self
                     .spin
                     .insert(if realtime { Duration::ZERO } else { SPIN })
@@ -580,6 +501,17 @@ impl Sink for UdpSink {
 mod tests {
     use super::*;
 
+    /// Datagrams of up to 1472 bytes to `address`, as fast as the socket takes them.
+    fn asap(address: &str, format: UdpFormat) -> UdpSinkConfig {
+        UdpSinkConfig {
+            address: address.to_string(),
+            format,
+            payload: 1472,
+            emit: EmitMode::Asap,
+            ..UdpSinkConfig::default()
+        }
+    }
+
     const FORMATS: [UdpFormat; 4] = [
         UdpFormat::Spif,
         UdpFormat::SpifTimestamped,
@@ -592,10 +524,10 @@ mod tests {
         for format in FORMATS {
             let rx = UdpSocket::bind("127.0.0.1:0").unwrap();
             rx.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
-            let mut config = UdpConfig::new(&rx.local_addr().unwrap().to_string(), format);
-            config.max_payload = 100;
-            config.max_datagrams_per_s = Some(20_000.0);
-            let mut sink = UdpSink::new(config).unwrap();
+            let mut config = asap(&rx.local_addr().unwrap().to_string(), format);
+            config.payload = 100;
+            config.rate = 20_000;
+            let mut sink = UdpSink::new(&config, 1.0).unwrap();
             let events: Vec<Event> = (0..500)
                 .map(|i| Event::new(i * 7, (i % 300) as u16, (i % 200) as u16, i % 3 == 0))
                 .collect();
@@ -626,7 +558,7 @@ mod tests {
             .unwrap()
             .local_addr()
             .unwrap();
-        let mut sink = UdpSink::new(UdpConfig::new(&port.to_string(), UdpFormat::Spif)).unwrap();
+        let mut sink = UdpSink::new(&asap(&port.to_string(), UdpFormat::Spif), 1.0).unwrap();
         let events: Vec<Event> = (0..100_000).map(|i| Event::new(i, 1, 2, true)).collect();
         for chunk in events.chunks(1000) {
             sink.send(chunk).unwrap();
@@ -651,15 +583,15 @@ mod tests {
         let rx = UdpSocket::bind("127.0.0.1:0").unwrap();
         rx.set_read_timeout(Some(Duration::from_millis(300)))
             .unwrap();
-        let mut config = UdpConfig::new(
-            &rx.local_addr().unwrap().to_string(),
-            UdpFormat::T64X16Y16On8,
-        );
-        config.max_payload = 512;
-        config.emission = Emission::EventTime {
-            delay,
-            slice: Duration::from_micros(500),
-            speed: 1.0,
+        let config = UdpSinkConfig {
+            address: rx.local_addr().unwrap().to_string(),
+            format: UdpFormat::T64X16Y16On8,
+            payload: 512,
+            emit: EmitMode::EventTime,
+            emit_delay_ms: delay.as_secs_f64() * 1e3,
+            emit_slice_ms: 0.5,
+            emit_priority: 0,
+            ..UdpSinkConfig::default()
         };
         let receiver = std::thread::spawn(move || {
             let mut got = Vec::new();
@@ -672,7 +604,7 @@ mod tests {
             }
             got
         });
-        let mut sink = UdpSink::new(config).unwrap();
+        let mut sink = UdpSink::new(&config, 1.0).unwrap();
         sink.send_closed(events, ClosedBy { t: 0, captured })
             .unwrap();
         let stats = sink.stats();
@@ -729,43 +661,41 @@ mod tests {
 
     #[test]
     fn bad_settings_are_errors() {
-        let mut c = UdpConfig::new("127.0.0.1:9", UdpFormat::T64X16Y16On8);
-        c.max_payload = 12;
-        assert!(UdpSink::new(c.clone()).is_err());
-        c.max_payload = 1472;
-        c.max_datagrams_per_s = Some(-1.0);
-        assert!(UdpSink::new(c).is_err());
-        assert!(UdpSink::new(UdpConfig::new("127.0.0.1", UdpFormat::Spif)).is_err());
+        let mut c = asap("127.0.0.1:9", UdpFormat::T64X16Y16On8);
+        c.payload = 12;
+        assert!(UdpSink::new(&c, 1.0).is_err());
+        c.payload = 1472;
+        c.emit = EmitMode::EventTime;
+        assert!(UdpSink::new(&c, 0.0).is_err(), "replay speed 0");
+        c.emit_slice_ms = 0.0;
+        assert!(UdpSink::new(&c, 1.0).is_err());
+        assert!(UdpSink::new(&asap("127.0.0.1", UdpFormat::Spif), 1.0).is_err());
         assert!(UdpFormat::from_name("json").is_err());
-        let mut s = UdpSink::new(UdpConfig::new("127.0.0.1:9", UdpFormat::T32X16Y15On1)).unwrap();
+        let mut s = UdpSink::new(&asap("127.0.0.1:9", UdpFormat::T32X16Y15On1), 1.0).unwrap();
         assert!(s.send(&[Event::new(0, 0, 40_000, true)]).is_err());
     }
 
     #[test]
     fn the_send_buffer_is_sized_for_the_rate() {
-        let send_buffer = |rate: Option<f64>| {
-            let mut c = UdpConfig::new("127.0.0.1:9", UdpFormat::Spif);
-            c.max_payload = 512;
-            c.max_datagrams_per_s = rate;
-            let sink = UdpSink::new(c).unwrap();
+        let send_buffer = |rate: u32| {
+            let mut c = asap("127.0.0.1:9", UdpFormat::Spif);
+            c.payload = 512;
+            c.rate = rate;
+            let sink = UdpSink::new(&c, 1.0).unwrap();
             set_socket_buffer(&sink.socket, libc::SO_SNDBUF, 0)
         };
-        let default = send_buffer(None);
+        let default = send_buffer(0);
         let cap = std::fs::read_to_string("/proc/sys/net/core/wmem_max")
             .ok()
             .and_then(|t| t.trim().parse::<usize>().ok())
             .map_or(usize::MAX, |m| 2 * m);
         // 20,000 datagrams/s of 512 bytes: a tenth of a second is 2,000 datagrams.
         let want: usize = 2_000 * (512 + 700);
-        let paced = send_buffer(Some(20_000.0));
+        let paced = send_buffer(20_000);
         assert!(
             paced >= want.min(cap).max(default),
             "{paced} < {want} (cap {cap})"
         );
-        assert_eq!(
-            send_buffer(Some(10.0)),
-            default,
-            "a slow rate keeps the default"
-        );
+        assert_eq!(send_buffer(10), default, "a slow rate keeps the default");
     }
 }
