@@ -161,13 +161,7 @@ pub fn open_sinks(
         height,
         speed,
     };
-    let outputs = config.outputs();
-    if outputs.is_empty() {
-        return Err(Error::invalid(
-            "run",
-            "no output: set udp, tcp or out, or add a [[sink]]",
-        ));
-    }
+    let outputs = config.outputs()?;
     outputs.iter().map(|sink| sink.build(&context)).collect()
 }
 
@@ -494,8 +488,8 @@ pub fn bench(
     config.run.size = format!("{}x{}", size.0, size.1);
     config.run.loop_source = true;
     config.run.duration = seconds;
-    config.run.udp = address;
-    config.run.udp_format = crate::format::datagram::UdpFormat::SpifTimestamped;
+    config.run.outputs.udp.address = address;
+    config.run.outputs.udp.format = crate::format::datagram::UdpFormat::SpifTimestamped;
     // The HTTP listener, to measure what it and a preview page cost.
     config.run.http = base.run.http.clone();
     let (source, what) = open_source(&config)?;
@@ -559,12 +553,12 @@ pub fn bench(
         latency: s.latency_total,
         // The fixture runs at 30 fps; at event time the last event of a batch leaves the emit
         // delay after its frame, and a window's stride of intervals waits before that.
-        budget_ms: match config.run.emit {
+        budget_ms: match config.run.outputs.udp.emit {
             crate::config::EmitMode::Asap => {
                 (1 + report.stage1.stride) as f64 * 1000.0 / 30.0 / speed.max(1e-9)
             }
             crate::config::EmitMode::EventTime => {
-                config.run.emit_delay_ms
+                config.run.outputs.udp.emit_delay_ms
                     + report.stage1.stride as f64 * 1000.0 / 30.0 / speed.max(1e-9)
             }
         },

@@ -32,6 +32,7 @@ pub mod sink;
 pub mod stage1;
 pub mod stage2;
 pub mod synthetic;
+pub mod toml_doc;
 pub mod tradeoff;
 pub mod transcode;
 pub mod voxel;

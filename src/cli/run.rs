@@ -157,35 +157,36 @@ pub fn run_config(args: &RunArgs) -> Result<Config> {
     if let Some(v) = &args.source {
         run.source = v.clone();
     }
+    let udp = &mut run.outputs.udp;
     if let Some(v) = &args.udp {
-        run.udp = v.clone();
+        udp.address = v.clone();
     }
     if let Some(v) = &args.udp_format {
-        run.udp_format = crate::format::datagram::UdpFormat::from_name(v)?;
+        udp.format = crate::format::datagram::UdpFormat::from_name(v)?;
     }
     if let Some(v) = args.udp_payload {
-        run.udp_payload = v;
+        udp.payload = v;
     }
     if let Some(v) = args.udp_rate {
-        run.udp_rate = v;
+        udp.rate = v;
     }
     if let Some(v) = args.emit {
-        run.emit = v;
+        udp.emit = v;
     }
     if let Some(v) = args.emit_delay_ms {
-        run.emit_delay_ms = v;
+        udp.emit_delay_ms = v;
     }
     if let Some(v) = args.emit_priority {
-        run.emit_priority = v;
+        udp.emit_priority = v;
     }
     if let Some(v) = &args.tcp {
-        run.tcp = v.clone();
+        run.outputs.tcp.address = v.clone();
     }
     if let Some(v) = args.tcp_format {
-        run.tcp_format = v;
+        run.outputs.tcp.format = v;
     }
     if let Some(v) = &args.out {
-        run.out = v.clone();
+        run.outputs.out.path = v.clone();
     }
     if args.wait_for_client {
         run.wait_for_client = true;

@@ -8,8 +8,8 @@ use crate::error::{Error, Result};
 use crate::event::Event;
 use crate::format::{self, EventEncoder, Format};
 
-/// A `[[sink]]` table of `type = "file"`.
-#[derive(Debug, Clone, PartialEq, serde::Deserialize)]
+/// A `[[sink]]` table of `type = "file"` (the default has no path: an output that is off).
+#[derive(Debug, Clone, Default, PartialEq, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct FileSinkConfig {
     /// The file; its extension picks the format (`.aedat4` with LZ4 packets, `.raw`, `.csv`,

@@ -100,6 +100,17 @@ fn default_max_clients() -> usize {
     DEFAULT_MAX_CLIENTS
 }
 
+/// No address (an output that is off), an AEDAT 4.0 stream, the default client cap.
+impl Default for TcpSinkConfig {
+    fn default() -> Self {
+        TcpSinkConfig {
+            address: String::new(),
+            format: TcpFormat::default(),
+            max_clients: DEFAULT_MAX_CLIENTS,
+        }
+    }
+}
+
 /// Clients a TCP sink serves at once unless configured.
 pub const DEFAULT_MAX_CLIENTS: usize = 64;
 
