@@ -35,9 +35,6 @@ pub struct Config {
     pub sink: Vec<SinkConfig>,
 }
 
-/// Parses a TOML document into `T` (see [`crate::toml_doc::parse`]).
-pub use crate::toml_doc::parse as parse_toml;
-
 /// Parses `WIDTHxHEIGHT` (each 1..=65535).
 pub fn parse_size(text: &str) -> Result<(u16, u16)> {
     let parsed = text
@@ -109,7 +106,7 @@ impl Config {
 
     /// Parses a TOML document; `origin` names it in errors.
     pub fn parse(text: &str, origin: &Path) -> Result<Self> {
-        let mut config: Config = parse_toml(text, origin)?;
+        let mut config: Config = crate::toml_doc::parse(text, origin)?;
         if !config.stage1.preset_file.as_os_str().is_empty() {
             let file = origin
                 .parent()

@@ -448,7 +448,7 @@ impl Stage1Config {
     /// Reads `path` as a preset file (see `preset_file`) and uses it from now on.
     pub fn load_preset_file(&mut self, path: &std::path::Path) -> Result<()> {
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-        let config: PhysicsConfig = crate::config::parse_toml(&text, path)?;
+        let config: PhysicsConfig = crate::toml_doc::parse(&text, path)?;
         config
             .validate()
             .map_err(|e| Error::format(path, e.to_string()))?;
