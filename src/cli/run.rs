@@ -34,6 +34,9 @@ pub struct RunArgs {
     /// Most UDP datagrams per second (0: unpaced) [config default: 0].
     #[arg(long)]
     pub udp_rate: Option<u32>,
+    /// UDP socket send buffer to ask for, bytes (0: the kernel's default) [config default: 0].
+    #[arg(long, value_name = "BYTES")]
+    pub udp_send_buffer: Option<usize>,
     /// When UDP events leave: event-time (each at its own time + the delay) or asap
     /// [config default: event-time].
     #[arg(long, value_enum)]
@@ -169,6 +172,9 @@ pub fn run_config(args: &RunArgs) -> Result<Config> {
     }
     if let Some(v) = args.udp_rate {
         udp.rate = v;
+    }
+    if let Some(v) = args.udp_send_buffer {
+        udp.send_buffer = v;
     }
     if let Some(v) = args.emit {
         udp.emit = v;

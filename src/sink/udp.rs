@@ -68,6 +68,9 @@ pub struct UdpSinkConfig {
     /// Realtime (`SCHED_FIFO`) priority of the sending thread at event time, 1..=99 (0: normal
     /// scheduling, spinning before each due time).
     pub emit_priority: u8,
+    /// Bytes of socket send buffer to ask the kernel for (`SO_SNDBUF`, capped by
+    /// `net.core.wmem_max`; 0: its default, or what `rate` needs).
+    pub send_buffer: usize,
 }
 
 impl Default for UdpSinkConfig {
@@ -81,6 +84,7 @@ impl Default for UdpSinkConfig {
             emit_delay_ms: 100.0,
             emit_slice_ms: 0.5,
             emit_priority: 10,
+            send_buffer: 0,
         }
     }
 }
@@ -111,6 +115,9 @@ impl UdpSinkConfig {
                 "emit_priority {} (must be 0 to 99)",
                 self.emit_priority
             ));
+        }
+        if self.send_buffer > 1 << 30 {
+            return bad(format!("send_buffer {} (at most 1 GiB)", self.send_buffer));
         }
         if !(self.emit_slice_ms.is_finite()
             && self.emit_slice_ms > 0.0
@@ -293,6 +300,15 @@ impl UdpSink {
             if got < want {
                 tracing::warn!(
                     "UDP send buffer: {got} bytes, not the {want} that {rate} datagrams/s want (raise net.core.wmem_max)"
+                );
+            }
+        }
+        if config.send_buffer > 0 {
+            let got = set_socket_buffer(&socket, libc::SO_SNDBUF, config.send_buffer);
+            if got < config.send_buffer {
+                tracing::warn!(
+                    "UDP send buffer: {got} bytes, not the {} asked for (raise net.core.wmem_max)",
+                    config.send_buffer
                 );
             }
         }
