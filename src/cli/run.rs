@@ -157,10 +157,20 @@ pub fn run_config(args: &RunArgs) -> Result<Config> {
         None => Config::default(),
     };
     let run = &mut config.run;
+    let source = &mut run.parts.source;
     if let Some(v) = &args.source {
-        run.source = v.clone();
+        source.source = v.clone();
     }
-    let udp = &mut run.outputs.udp;
+    if let Some(v) = &args.size {
+        source.size = v.clone();
+    }
+    if let Some(v) = args.replay_speed {
+        source.replay_speed = v;
+    }
+    if args.loop_source {
+        source.loop_source = true;
+    }
+    let udp = &mut run.parts.udp;
     if let Some(v) = &args.udp {
         udp.address = v.clone();
     }
@@ -186,13 +196,13 @@ pub fn run_config(args: &RunArgs) -> Result<Config> {
         udp.emit_priority = v;
     }
     if let Some(v) = &args.tcp {
-        run.outputs.tcp.address = v.clone();
+        run.parts.tcp.address = v.clone();
     }
     if let Some(v) = args.tcp_format {
-        run.outputs.tcp.format = v;
+        run.parts.tcp.format = v;
     }
     if let Some(v) = &args.out {
-        run.outputs.out.path = v.clone();
+        run.parts.out.path = v.clone();
     }
     if args.wait_for_client {
         run.wait_for_client = true;
@@ -205,15 +215,6 @@ pub fn run_config(args: &RunArgs) -> Result<Config> {
     }
     if let Some(v) = args.max_frames {
         run.max_frames = v;
-    }
-    if let Some(v) = &args.size {
-        run.size = v.clone();
-    }
-    if let Some(v) = args.replay_speed {
-        run.replay_speed = v;
-    }
-    if args.loop_source {
-        run.loop_source = true;
     }
     if let Some(v) = args.stats_interval {
         run.stats_interval = v;

@@ -9,7 +9,7 @@ use serde::Deserialize;
 
 mod run;
 
-pub use run::{RunConfig, Shorthands, DEFAULT_UDP};
+pub use run::{Parts, RunConfig, DEFAULT_UDP};
 
 use crate::error::{Error, Result};
 pub use crate::sink::udp::EmitMode;
@@ -78,7 +78,7 @@ impl Config {
     /// Every output of the daemon: the `[run]` shorthands, then the `[[sink]]` tables; an
     /// error when there is none.
     pub fn outputs(&self) -> Result<Vec<SinkConfig>> {
-        let mut sinks = self.run.outputs.sinks();
+        let mut sinks = self.run.parts.sinks();
         sinks.extend(self.sink.iter().cloned());
         if sinks.is_empty() {
             return Err(Error::invalid(
@@ -257,7 +257,7 @@ evt = 3
             assert!(err.contains(needle), "{text}: {err}");
         }
         let mut c = Config::default();
-        c.run.outputs.udp.address.clear();
+        c.run.parts.udp.address.clear();
         assert!(c.validate().unwrap_err().to_string().contains("no output"));
         c.run.wait_for_client = true;
         c.sink.push(SinkConfig::File(FileSinkConfig::new("a.csv")));

@@ -1,16 +1,18 @@
 //! The `[run]` table: what `v2ce run` reads, how its pipeline copes, and its outputs.
 //!
-//! Besides its own keys, `[run]` holds a shorthand for one output of each kind, whose keys fill
-//! that sink's configuration directly (the same struct a `[[sink]]` table fills): `udp` is the
-//! UDP output's address and `udp_KEY` (or `emit*`, as they have always been spelled) its `KEY`;
+//! Besides its own keys (the pipeline's), `[run]` holds the source's keys, which fill its
+//! [`SourceConfig`], and a shorthand for one output of each kind, whose keys fill that sink's
+//! configuration directly (the same struct a `[[sink]]` table fills): `udp` is the UDP
+//! output's address and `udp_KEY` (or `emit*`, as they have always been spelled) its `KEY`;
 //! `tcp` and `tcp_KEY` the TCP output's; `out` and `out_KEY` the file output's. A key added
-//! to a sink's configuration is a `[run]` key at once.
+//! to the source's or a sink's configuration is a `[run]` key at once.
 
 use std::collections::BTreeMap;
 
 use serde::de::Error as _;
 use serde::{Deserialize, Deserializer};
 
+use crate::daemon::SourceConfig;
 use crate::error::{Error, Result};
 use crate::pipeline::queue::QueuePolicy;
 use crate::sink::file::FileSinkConfig;
@@ -22,18 +24,6 @@ use crate::sink::SinkConfig;
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(default)]
 pub struct RunConfig {
-    /// A camera (`/dev/video0`, or an index), a file (video, image folder, `.y4m`, `.aedat4`
-    /// with APS frames), or `""`: the first camera, else the bundled fixture video.
-    pub source: String,
-    /// Resample frames to `WIDTHxHEIGHT` (`""`: the source's size).
-    pub size: String,
-    /// A file source is replayed at this multiple of real time, paced by its own timestamps.
-    pub replay_speed: f64,
-    /// Replay a file source again and again (times keep increasing).
-    #[serde(rename = "loop")]
-    pub loop_source: bool,
-    /// Frame rate of an image folder without a times file (0: required from the folder).
-    pub fps: f64,
     /// Hold the source until the first TCP client has connected (nothing is streamed before).
     pub wait_for_client: bool,
     /// What a full queue does: "drop-oldest" (stay live) or "block" (lose nothing).
@@ -46,52 +36,38 @@ pub struct RunConfig {
     pub max_frames: u64,
     /// Seconds between stats lines on the log and in the systemd status.
     pub stats_interval: f64,
-    /// First wait before reopening a camera that failed, milliseconds; doubled per failure.
-    pub reconnect_min_ms: u64,
-    /// Longest wait between reopening attempts, milliseconds.
-    pub reconnect_max_ms: u64,
     /// Serve `/metrics`, `/healthz`, `/readyz` and the live preview page on this `HOST:PORT`
     /// (`""`: off; keep it on loopback unless the network is trusted: no authentication).
     pub http: String,
     /// `/readyz` says not ready when no frame came for this many seconds.
     pub ready_timeout: f64,
-    /// The shorthand outputs (every other key of the table).
+    /// The source and the shorthand outputs (every other key of the table).
     #[serde(flatten)]
-    pub outputs: Shorthands,
+    pub parts: Parts,
 }
 
 impl Default for RunConfig {
     fn default() -> Self {
         RunConfig {
-            source: String::new(),
-            size: String::new(),
-            replay_speed: 1.0,
-            loop_source: false,
-            fps: 0.0,
             wait_for_client: false,
             queue_policy: QueuePolicy::DropOldest,
             queue_capacity: 4,
             duration: 0.0,
             max_frames: 0,
             stats_interval: 10.0,
-            reconnect_min_ms: 500,
-            reconnect_max_ms: 10_000,
             http: String::new(),
             ready_timeout: 2.0,
-            outputs: Shorthands::default(),
+            parts: Parts::default(),
         }
     }
 }
 
 impl RunConfig {
-    /// Checks values that TOML types cannot (the outputs are checked with the others, see
-    /// [`super::Config::outputs`]).
+    /// Checks values that TOML types cannot, and the source's (the outputs are checked with
+    /// the others, see [`super::Config::outputs`]).
     pub fn validate(&self) -> Result<()> {
         let bad = |what: &'static str, message: String| Err(Error::invalid(what, message));
-        crate::limits::replay_speed("run.replay_speed", self.replay_speed)?;
-        if self.fps != 0.0 {
-            crate::limits::frame_rate("run.fps", self.fps)?;
-        }
+        self.parts.source.validate()?;
         crate::limits::seconds("run.duration", self.duration, true)?;
         crate::limits::seconds("run.stats_interval", self.stats_interval, false)?;
         crate::limits::seconds("run.ready_timeout", self.ready_timeout, false)?;
@@ -107,15 +83,6 @@ impl RunConfig {
                 format!("{} (must be 1..=1024)", self.queue_capacity),
             );
         }
-        if self.reconnect_min_ms == 0 || self.reconnect_max_ms < self.reconnect_min_ms {
-            return bad(
-                "run.reconnect_min_ms",
-                "must be > 0 and at most reconnect_max_ms".into(),
-            );
-        }
-        if !self.size.is_empty() {
-            super::parse_size(&self.size)?;
-        }
         Ok(())
     }
 }
@@ -123,10 +90,13 @@ impl RunConfig {
 /// The UDP output the daemon sends to unless told otherwise.
 pub const DEFAULT_UDP: &str = "127.0.0.1:3333";
 
-/// The outputs the `[run]` table's shorthand keys configure: one of each kind, off while its
-/// address (or path) is empty.
+/// What the `[run]` table's other keys configure: the source, and one output of each kind
+/// (off while its address or path is empty).
 #[derive(Debug, Clone, PartialEq)]
-pub struct Shorthands {
+pub struct Parts {
+    /// `source`, `size`, `replay_speed`, `loop`, `fps`, `reconnect_min_ms`,
+    /// `reconnect_max_ms`.
+    pub source: SourceConfig,
     /// `udp` (the address, [`DEFAULT_UDP`] by default), `udp_format`, `udp_payload`,
     /// `udp_rate` and `emit*`.
     pub udp: UdpSinkConfig,
@@ -136,9 +106,10 @@ pub struct Shorthands {
     pub out: FileSinkConfig,
 }
 
-impl Default for Shorthands {
+impl Default for Parts {
     fn default() -> Self {
-        Shorthands {
+        Parts {
+            source: SourceConfig::default(),
             udp: UdpSinkConfig {
                 address: DEFAULT_UDP.into(),
                 ..UdpSinkConfig::default()
@@ -149,37 +120,33 @@ impl Default for Shorthands {
     }
 }
 
-/// Which output a shorthand key is for.
+/// Which part a `[run]` key is for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Kind {
+    Source,
     Udp,
     Tcp,
     Out,
 }
 
 impl Kind {
-    const ALL: [Kind; 3] = [Kind::Udp, Kind::Tcp, Kind::Out];
+    const ALL: [Kind; 4] = [Kind::Source, Kind::Udp, Kind::Tcp, Kind::Out];
 
-    /// The key that names the output's address or path, and the prefix of its other keys.
-    fn key(self) -> &'static str {
+    /// For an output: the key that names its address or path (and the prefix of its other
+    /// keys), and the field that key fills. The source's keys are its fields' names.
+    fn address(self) -> Option<(&'static str, &'static str)> {
         match self {
-            Kind::Udp => "udp",
-            Kind::Tcp => "tcp",
-            Kind::Out => "out",
+            Kind::Source => None,
+            Kind::Udp => Some(("udp", "address")),
+            Kind::Tcp => Some(("tcp", "address")),
+            Kind::Out => Some(("out", "path")),
         }
     }
 
-    /// The sink config's field the bare key fills.
-    fn address_field(self) -> &'static str {
-        match self {
-            Kind::Out => "path",
-            _ => "address",
-        }
-    }
-
-    /// The sink config's fields.
+    /// The part's fields.
     fn fields(self) -> &'static [&'static str] {
         match self {
+            Kind::Source => crate::toml_doc::keys::<SourceConfig>(),
             Kind::Udp => crate::toml_doc::keys::<UdpSinkConfig>(),
             Kind::Tcp => crate::toml_doc::keys::<TcpSinkConfig>(),
             Kind::Out => crate::toml_doc::keys::<FileSinkConfig>(),
@@ -188,12 +155,11 @@ impl Kind {
 
     /// The `[run]` key of one of its fields.
     fn run_key(self, field: &str) -> String {
-        if field == self.address_field() {
-            self.key().to_string()
-        } else if self == Kind::Udp && field.starts_with("emit") {
-            field.to_string()
-        } else {
-            format!("{}_{field}", self.key())
+        match self.address() {
+            None => field.to_string(),
+            Some((key, address)) if field == address => key.to_string(),
+            Some(_) if self == Kind::Udp && field.starts_with("emit") => field.to_string(),
+            Some((key, _)) => format!("{key}_{field}"),
         }
     }
 
@@ -206,7 +172,7 @@ impl Kind {
     }
 }
 
-impl Shorthands {
+impl Parts {
     /// The outputs that are on, UDP first, then TCP, then the file.
     pub fn sinks(&self) -> Vec<SinkConfig> {
         let mut sinks = Vec::new();
@@ -222,7 +188,7 @@ impl Shorthands {
         sinks
     }
 
-    /// Every shorthand key, for error messages.
+    /// Every key the parts take, for error messages.
     fn all_keys() -> Vec<String> {
         Kind::ALL
             .into_iter()
@@ -231,34 +197,39 @@ impl Shorthands {
     }
 }
 
-/// The keys `[run]` does not know itself come here: each fills its output's configuration,
-/// and a key that names no output's field is an error that names it.
-impl<'de> Deserialize<'de> for Shorthands {
+/// The keys `[run]` does not know itself come here: each fills its part's configuration, and
+/// a key that names no part's field is an error that names it.
+impl<'de> Deserialize<'de> for Parts {
     fn deserialize<D: Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
         let given = BTreeMap::<String, toml::Value>::deserialize(d)?;
-        let defaults = Shorthands::default();
+        let defaults = Parts::default();
+        // An output's table starts with its default address (the UDP output's is on).
         let seed = |kind: Kind| {
+            let mut table = toml::Table::new();
             let address = match kind {
+                Kind::Source => return table,
                 Kind::Udp => defaults.udp.address.clone(),
                 Kind::Tcp => defaults.tcp.address.clone(),
                 Kind::Out => defaults.out.path.clone(),
             };
-            let mut table = toml::Table::new();
-            table.insert(kind.address_field().into(), address.into());
+            if let Some((_, field)) = kind.address() {
+                table.insert(field.into(), address.into());
+            }
             table
         };
         let mut tables = Kind::ALL.map(seed);
         for (key, value) in given {
             let Some((kind, field)) = Kind::route(&key) else {
-                let known = Shorthands::all_keys().join("`, `");
+                let known = Parts::all_keys().join("`, `");
                 return Err(D::Error::custom(format!(
                     "unknown field `{key}`, expected a key of the [run] table (config/v2ce.toml) or one of `{known}`"
                 )));
             };
             tables[kind as usize].insert(field.into(), value);
         }
-        let [udp, tcp, out] = tables;
-        Ok(Shorthands {
+        let [source, udp, tcp, out] = tables;
+        Ok(Parts {
+            source: fill(Kind::Source, source)?,
             udp: fill(Kind::Udp, udp)?,
             tcp: fill(Kind::Tcp, tcp)?,
             out: fill(Kind::Out, out)?,
@@ -292,7 +263,7 @@ mod tests {
 
     #[test]
     fn every_sink_field_is_a_run_key() {
-        let keys = Shorthands::all_keys();
+        let keys = Parts::all_keys();
         for k in [
             "udp",
             "udp_format",
@@ -307,10 +278,18 @@ mod tests {
             "tcp_max_clients",
             "out",
             "out_evt",
+            "source",
+            "loop",
+            "reconnect_max_ms",
         ] {
             assert!(keys.iter().any(|x| x == k), "{k} not in {keys:?}");
         }
-        // Each key routes back to the output and field it was made from.
+        // No two parts share a key, and each key routes back to the part and field it was
+        // made from.
+        let mut unique = keys.clone();
+        unique.sort();
+        unique.dedup();
+        assert_eq!(unique.len(), keys.len(), "{keys:?}");
         for kind in Kind::ALL {
             for field in kind.fields() {
                 assert_eq!(Kind::route(&kind.run_key(field)), Some((kind, *field)));
@@ -325,7 +304,7 @@ mod tests {
             Path::new("x.toml"),
         )
         .unwrap();
-        let o = &c.run.outputs;
+        let o = &c.run.parts;
         assert_eq!(o.udp.address, DEFAULT_UDP);
         assert_eq!(
             (o.udp.format, o.udp.emit_delay_ms),

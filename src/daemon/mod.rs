@@ -2,20 +2,21 @@
 //! replayed in real time, or the bundled fixture), the outputs (UDP, TCP, file), signals,
 //! systemd readiness and status, and periodic stats on the log; and [`bench()`], which measures it.
 
-use std::path::PathBuf;
+mod source;
+
+pub use source::{choose_source, SourceChoice, SourceConfig};
+
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use serde::Serialize;
 use std::time::Duration;
 
-use crate::capture;
-use crate::config::{parse_size, Config, RunConfig};
+use crate::config::{Config, RunConfig};
 use crate::error::{Error, Result};
-use crate::frame::resize::Resized;
-use crate::frame::{self, FrameSource, SourceOptions};
+use crate::frame;
 use crate::pipeline::stats::{Latency, ProcessUsage, Snapshot};
-use crate::pipeline::{self, End, Options, Report, Source, Stages};
+use crate::pipeline::{self, End, Options, Report, Stages};
 use crate::sink::{Sink, SinkContext};
 
 /// Raises the returned flag on the first SIGINT or SIGTERM (the pipeline then flushes and
@@ -30,121 +31,6 @@ pub fn stop_on_signals() -> Result<Arc<AtomicBool>> {
         signal_hook::flag::register(sig, flag.clone()).map_err(err)?;
     }
     Ok(flag)
-}
-
-/// What `[run] source` names.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum SourceChoice {
-    /// A camera device.
-    Camera(String),
-    /// A file or image folder, replayed at its own pace.
-    File(PathBuf),
-    /// The bundled fixture video; `defaulted` when chosen because no source was given and no
-    /// camera was found.
-    Fixture {
-        /// No source given, no camera present.
-        defaulted: bool,
-    },
-}
-
-/// Resolves `source`: `""` is the first camera, else the fixture; `fixture` is the fixture; a
-/// device path or index is a camera; anything else a file.
-pub fn choose_source(source: &str, cameras: impl FnOnce() -> Vec<String>) -> SourceChoice {
-    if source.is_empty() {
-        return match cameras().into_iter().next() {
-            Some(path) => SourceChoice::Camera(path),
-            None => SourceChoice::Fixture { defaulted: true },
-        };
-    }
-    if source == frame::fixture::NAME {
-        return SourceChoice::Fixture { defaulted: false };
-    }
-    if capture::is_camera(source) {
-        return SourceChoice::Camera(source.to_string());
-    }
-    SourceChoice::File(PathBuf::from(source))
-}
-
-fn camera_paths() -> Vec<String> {
-    match capture::list_cameras() {
-        Ok(list) => list.into_iter().map(|c| c.path).collect(),
-        Err(e) => {
-            tracing::debug!("listing cameras: {e}");
-            Vec::new()
-        }
-    }
-}
-
-/// Opens the configured source: the pipeline's [`Source`] and a description for the log.
-pub fn open_source(config: &Config) -> Result<(Source, String)> {
-    let run = &config.run;
-    let size = match run.size.as_str() {
-        "" => None,
-        s => Some(parse_size(s)?),
-    };
-    let sized = move |s: Box<dyn FrameSource>| -> Result<Box<dyn FrameSource>> {
-        match size {
-            Some(size) if size != s.size() => Ok(Box::new(Resized::new(s, size)?)),
-            _ => Ok(s),
-        }
-    };
-    let backoff = (
-        Duration::from_millis(run.reconnect_min_ms),
-        Duration::from_millis(run.reconnect_max_ms),
-    );
-    let choice = choose_source(&run.source, camera_paths);
-    let (mut reopen, live, what): (pipeline::Reopen, bool, String) = match choice {
-        SourceChoice::Camera(device) => {
-            let camera = config.camera.clone();
-            (
-                Box::new(move || sized(capture::open_camera(&device, &camera)?)),
-                true,
-                "camera".into(),
-            )
-        }
-        SourceChoice::File(path) => {
-            let options = SourceOptions {
-                fps: (run.fps > 0.0).then_some(run.fps),
-                color: crate::frame::images::ColorSpace::Auto,
-            };
-            (
-                Box::new(move || sized(frame::open(&path, &options)?)),
-                false,
-                "replaying".into(),
-            )
-        }
-        SourceChoice::Fixture { defaulted } => (
-            Box::new(move || sized(frame::fixture::open()?)),
-            false,
-            if defaulted {
-                "no camera found and no source configured: replaying the bundled fixture video"
-                    .into()
-            } else {
-                "replaying the bundled fixture video".into()
-            },
-        ),
-    };
-    let first = reopen()?;
-    let what = format!(
-        "{what} {}{}",
-        first.describe(),
-        match (live, run.loop_source) {
-            (true, _) => String::new(),
-            (false, true) => format!(" at {}x real time, looped", run.replay_speed),
-            (false, false) => format!(" at {}x real time", run.replay_speed),
-        }
-    );
-    Ok((
-        Source {
-            first,
-            reopen: Some(reopen),
-            live,
-            looped: run.loop_source && !live,
-            pace: (!live).then_some(run.replay_speed),
-            backoff,
-        },
-        what,
-    ))
 }
 
 /// Opens every configured output (see [`Config::outputs`]) for a `width x height` sensor whose
@@ -244,7 +130,7 @@ fn start_http(
 /// line every `stats_interval` and mirrors it in the systemd status.
 pub fn run(config: &Config, stop: &AtomicBool) -> Result<Report> {
     config.validate()?;
-    let (source, what) = open_source(config)?;
+    let (source, what) = config.run.parts.source.build(&config.camera)?;
     let stage1 = crate::convert::build_stage1(config, source.first.as_ref())?;
     let (w, h) = stage1.output_size();
     let mut sinks = open_sinks(config, w, h, source.pace.unwrap_or(1.0))?;
@@ -483,16 +369,17 @@ pub fn bench(
         sink: Vec::new(),
         ..base.clone()
     };
-    config.run.replay_speed = speed;
-    config.run.source = frame::fixture::NAME.into();
-    config.run.size = format!("{}x{}", size.0, size.1);
-    config.run.loop_source = true;
+    let source = &mut config.run.parts.source;
+    source.replay_speed = speed;
+    source.source = frame::fixture::NAME.into();
+    source.size = format!("{}x{}", size.0, size.1);
+    source.loop_source = true;
     config.run.duration = seconds;
-    config.run.outputs.udp.address = address;
-    config.run.outputs.udp.format = crate::format::datagram::UdpFormat::SpifTimestamped;
+    config.run.parts.udp.address = address;
+    config.run.parts.udp.format = crate::format::datagram::UdpFormat::SpifTimestamped;
     // The HTTP listener, to measure what it and a preview page cost.
     config.run.http = base.run.http.clone();
-    let (source, what) = open_source(&config)?;
+    let (source, what) = config.run.parts.source.build(&config.camera)?;
     let stage1 = crate::convert::build_stage1(&config, source.first.as_ref())?;
     let mut sinks = open_sinks(&config, size.0, size.1, speed)?;
     let http = start_http(&config, &what, stage1.as_ref(), &mut sinks)?;
@@ -553,12 +440,12 @@ pub fn bench(
         latency: s.latency_total,
         // The fixture runs at 30 fps; at event time the last event of a batch leaves the emit
         // delay after its frame, and a window's stride of intervals waits before that.
-        budget_ms: match config.run.outputs.udp.emit {
+        budget_ms: match config.run.parts.udp.emit {
             crate::config::EmitMode::Asap => {
                 (1 + report.stage1.stride) as f64 * 1000.0 / 30.0 / speed.max(1e-9)
             }
             crate::config::EmitMode::EventTime => {
-                config.run.outputs.udp.emit_delay_ms
+                config.run.parts.udp.emit_delay_ms
                     + report.stage1.stride as f64 * 1000.0 / 30.0 / speed.max(1e-9)
             }
         },
@@ -567,33 +454,4 @@ pub fn bench(
         rss_range_kib: (rss.iter().copied().min().unwrap_or(0), max_of(&rss)),
         rss_first_last_minute_kib: (max_of(&rss[..minute]), max_of(&rss[rss.len() - minute..])),
     })
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn sources_resolve() {
-        assert_eq!(
-            choose_source("", Vec::new),
-            SourceChoice::Fixture { defaulted: true }
-        );
-        assert_eq!(
-            choose_source("", || vec!["/dev/video2".into()]),
-            SourceChoice::Camera("/dev/video2".into())
-        );
-        assert_eq!(
-            choose_source("fixture", || panic!("no camera lookup")),
-            SourceChoice::Fixture { defaulted: false }
-        );
-        assert_eq!(
-            choose_source("/dev/video0", Vec::new),
-            SourceChoice::Camera("/dev/video0".into())
-        );
-        assert_eq!(
-            choose_source("clip.mp4", Vec::new),
-            SourceChoice::File("clip.mp4".into())
-        );
-    }
 }
