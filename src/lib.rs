@@ -29,6 +29,7 @@ pub mod pipeline;
 pub mod realtime;
 pub mod render;
 pub mod sink;
+pub mod source;
 pub mod stage1;
 pub mod stage2;
 pub mod synthetic;

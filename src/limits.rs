@@ -161,6 +161,23 @@ pub fn intervals(what: &'static str, count: f64) -> Result<()> {
     Ok(())
 }
 
+/// Parses `WIDTHxHEIGHT` (each 1..=65535).
+pub fn parse_size(text: &str) -> Result<(u16, u16)> {
+    let parsed = text
+        .split_once(['x', 'X'])
+        .and_then(|(w, h)| Some((w.trim().parse::<u16>().ok()?, h.trim().parse::<u16>().ok()?)));
+    match parsed {
+        Some((w, h)) if w > 0 && h > 0 => {
+            frame_size("size", w.into(), h.into())?;
+            Ok((w, h))
+        }
+        _ => Err(Error::invalid(
+            "size",
+            format!("{text:?} (expected WIDTHxHEIGHT, e.g. 346x260)"),
+        )),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

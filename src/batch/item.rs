@@ -90,7 +90,7 @@ pub(super) fn do_item(
         Ok(c) => c,
         Err(e) => return fail(record, e),
     };
-    let size = match item.settings.size.as_deref().map(crate::config::parse_size) {
+    let size = match item.settings.size.as_deref().map(crate::limits::parse_size) {
         Some(Ok(s)) => Some(s),
         Some(Err(e)) => return fail(record, e),
         None => None,

@@ -5,8 +5,9 @@ use std::path::PathBuf;
 use clap::Args;
 
 use super::*;
-use crate::config::{parse_size, Config};
+use crate::config::Config;
 use crate::error::Result;
+use crate::limits::parse_size;
 use crate::stage2::SamplerKind;
 
 /// The flags of `v2ce convert`.

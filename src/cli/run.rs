@@ -6,8 +6,9 @@ use clap::{Args, Subcommand};
 
 use super::tradeoff::TradeoffArgs;
 use super::*;
-use crate::config::{parse_size, Config};
+use crate::config::Config;
 use crate::error::{Error, Result};
+use crate::limits::parse_size;
 
 /// The flags of `v2ce run`.
 #[derive(Args)]

@@ -11,6 +11,10 @@ mod run;
 
 pub use run::{Parts, RunConfig, DEFAULT_UDP};
 
+// Until the command modules that still name it here move to `limits::parse_size`.
+#[doc(hidden)]
+pub use crate::limits::parse_size;
+
 use crate::error::{Error, Result};
 pub use crate::sink::udp::EmitMode;
 use crate::sink::SinkConfig;
@@ -33,23 +37,6 @@ pub struct Config {
     /// More outputs of the daemon, one `[[sink]]` table each (besides the `[run]` shorthands
     /// `udp`, `tcp` and `out`).
     pub sink: Vec<SinkConfig>,
-}
-
-/// Parses `WIDTHxHEIGHT` (each 1..=65535).
-pub fn parse_size(text: &str) -> Result<(u16, u16)> {
-    let parsed = text
-        .split_once(['x', 'X'])
-        .and_then(|(w, h)| Some((w.trim().parse::<u16>().ok()?, h.trim().parse::<u16>().ok()?)));
-    match parsed {
-        Some((w, h)) if w > 0 && h > 0 => {
-            crate::limits::frame_size("size", w.into(), h.into())?;
-            Ok((w, h))
-        }
-        _ => Err(Error::invalid(
-            "size",
-            format!("{text:?} (expected WIDTHxHEIGHT, e.g. 346x260)"),
-        )),
-    }
 }
 
 /// Stage 2 settings.

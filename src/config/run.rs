@@ -12,13 +12,13 @@ use std::collections::BTreeMap;
 use serde::de::Error as _;
 use serde::{Deserialize, Deserializer};
 
-use crate::daemon::SourceConfig;
 use crate::error::{Error, Result};
 use crate::pipeline::queue::QueuePolicy;
 use crate::sink::file::FileSinkConfig;
 use crate::sink::tcp::TcpSinkConfig;
 use crate::sink::udp::UdpSinkConfig;
 use crate::sink::SinkConfig;
+use crate::source::SourceConfig;
 
 /// The `[run]` table.
 #[derive(Debug, Clone, PartialEq, Deserialize)]

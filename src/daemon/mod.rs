@@ -2,10 +2,6 @@
 //! replayed in real time, or the bundled fixture), the outputs (UDP, TCP, file), signals,
 //! systemd readiness and status, and periodic stats on the log; and [`bench()`], which measures it.
 
-mod source;
-
-pub use source::{choose_source, SourceChoice, SourceConfig};
-
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 

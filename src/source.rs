@@ -1,4 +1,5 @@
-//! The daemon's source, as `[run]` configures it: a camera, a file replayed at its own pace
+//! Where the daemon's frames come from, as `[run]` configures it (the source component, as
+//! [`crate::sink`] holds the outputs): a camera, a file replayed at its own pace
 //! (or faster, or looped), or the bundled fixture video; reopened after a failure with a
 //! growing wait.
 
@@ -8,10 +9,10 @@ use std::time::Duration;
 use serde::Deserialize;
 
 use crate::capture::{self, CameraConfig};
-use crate::config::parse_size;
 use crate::error::Result;
 use crate::frame::resize::Resized;
 use crate::frame::{self, FrameSource, SourceOptions};
+use crate::limits::parse_size;
 use crate::pipeline::{self, Source};
 
 /// The `[run]` keys of the source.
