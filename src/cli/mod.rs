@@ -113,13 +113,13 @@ pub struct RuntimeArgs {
 }
 
 impl RuntimeArgs {
-    /// The runtime options these flags ask for.
-    pub fn options(&self) -> crate::stage1::learned::RuntimeOptions {
-        crate::stage1::learned::RuntimeOptions {
+    /// The learned tier's settings these flags ask for (the runtime's; the rest default).
+    pub fn options(&self) -> crate::stage1::LearnedConfig {
+        crate::stage1::LearnedConfig {
             threads: self.threads,
             device: self.device,
-            library: None,
             cpu_arena: self.cpu_arena,
+            ..Default::default()
         }
     }
 }

@@ -8,7 +8,8 @@ use ndarray::{ArrayD, IxDyn};
 
 use crate::error::{Error, Result};
 
-use super::runtime::{Network, RuntimeOptions};
+use super::runtime::Network;
+use super::LearnedConfig;
 
 /// What [`run_npy`] did.
 #[derive(Debug, Clone, PartialEq)]
@@ -31,7 +32,7 @@ pub fn run_npy(
     model: &Path,
     input: &Path,
     output: &Path,
-    options: &RuntimeOptions,
+    options: &LearnedConfig,
 ) -> Result<RawReport> {
     let array: ArrayD<f32> = ndarray_npy::read_npy(input).map_err(|e| {
         Error::format(
@@ -115,7 +116,7 @@ pub fn bench(
     size: (usize, usize),
     pairs: usize,
     runs: usize,
-    options: &RuntimeOptions,
+    options: &LearnedConfig,
 ) -> Result<BenchReport> {
     let (w, h) = size;
     if w == 0 || h == 0 || pairs == 0 || runs == 0 {

@@ -25,6 +25,7 @@ use crate::error::{Error, Result};
 use crate::model::v2ce_net::{ALIGN_KEY, RECEPTIVE_MARGIN_KEY};
 
 use super::roi::Margin;
+use super::LearnedConfig;
 
 /// The ONNX Runtime release the project is built against (`ort`'s `api-31`).
 pub const ORT_VERSION: &str = "1.31.1";
@@ -43,21 +44,6 @@ pub enum Device {
     /// CUDA when the library has it and it starts, else the CPU (the default).
     #[default]
     Auto,
-}
-
-/// How to run a model.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct RuntimeOptions {
-    /// Intra-op threads (0: ONNX Runtime's default, one per core).
-    pub threads: usize,
-    /// Execution provider.
-    pub device: Device,
-    /// The library file, when not found by [`find_library`]'s search.
-    pub library: Option<PathBuf>,
-    /// Keep ONNX Runtime's CPU memory arena (a pool that only grows). Off by default: measured
-    /// at 346x260 with 16 pairs, the arena doubled the peak resident set (3.3 GB against 1.5 GB)
-    /// and made no run faster.
-    pub cpu_arena: bool,
 }
 
 fn library_names(dir: &Path) -> Option<PathBuf> {
@@ -255,7 +241,7 @@ pub struct Network {
 impl Network {
     /// Opens `path` with `options`; checks that the model takes one rank-5 float input with 2
     /// channels in axis 2 and gives a rank-5 output.
-    pub fn open(path: &Path, options: &RuntimeOptions) -> Result<Self> {
+    pub fn open(path: &Path, options: &LearnedConfig) -> Result<Self> {
         if !path.is_file() {
             return Err(Error::io(
                 path,
@@ -266,16 +252,17 @@ impl Network {
     }
 
     /// Opens a model held in memory (one built into v2ce), named `name` in messages.
-    pub fn open_bytes(name: &Path, bytes: &[u8], options: &RuntimeOptions) -> Result<Self> {
+    pub fn open_bytes(name: &Path, bytes: &[u8], options: &LearnedConfig) -> Result<Self> {
         Self::open_from(name, Some(bytes), options)
     }
 
-    fn open_from(path: &Path, bytes: Option<&[u8]>, options: &RuntimeOptions) -> Result<Self> {
+    fn open_from(path: &Path, bytes: Option<&[u8]>, options: &LearnedConfig) -> Result<Self> {
         let commit = |b: &mut ort::session::builder::SessionBuilder| match bytes {
             Some(bytes) => b.commit_from_memory(bytes),
             None => b.commit_from_file(path),
         };
-        let (_, env) = load(options.library.as_deref())?;
+        let library = Some(options.ort_library.as_path()).filter(|p| !p.as_os_str().is_empty());
+        let (_, env) = load(library)?;
         let mut builder = Session::builder(env).map_err(ort_err("session options"))?;
         if options.threads > 0 {
             builder = builder
