@@ -24,7 +24,7 @@ use serde::Serialize;
 use crate::error::{Error, Result};
 use crate::event::{sort_events, Event};
 use crate::frame::{Frame, FULL_SCALE};
-use crate::interval::Interval;
+use crate::interval::{intervals_between, Interval};
 use crate::metrics::stage1::{score, Stage1Metrics};
 use crate::stage1::{PhysicsConfig, PhysicsSim, Preset};
 
@@ -179,11 +179,7 @@ pub fn calibrate(rec: &Recording, base: &PhysicsConfig, seed: u64) -> Result<Cal
             format!("{n} frames; need at least 5 (4 intervals, 2 per half)"),
         ));
     }
-    let intervals: Vec<Interval> = rec
-        .frames
-        .windows(2)
-        .map(|w| Interval::new(w[0].t, w[1].t))
-        .collect::<Result<_>>()?;
+    let intervals = intervals_between(rec.frames)?;
     let still = still_pixels(rec.frames);
     let mut fitter = Fitter {
         rec,
@@ -754,10 +750,7 @@ mod tests {
                 events: &steady,
                 size: (48, 32),
             },
-            intervals: &frames
-                .windows(2)
-                .map(|w| Interval::new(w[0].t, w[1].t).unwrap())
-                .collect::<Vec<_>>(),
+            intervals: &intervals_between(&frames).unwrap(),
             still: &still,
             seed: 0,
             runs: 0,

@@ -65,10 +65,7 @@ pub fn tradeoff(args: TradeoffArgs) -> Result<()> {
             crate::frame::images::ColorSpace::Auto,
             100_000,
         )?;
-        let intervals: Vec<crate::interval::Interval> = frames
-            .windows(2)
-            .map(|w| crate::interval::Interval::new(w[0].t, w[1].t))
-            .collect::<Result<_>>()?;
+        let intervals = crate::interval::intervals_between(&frames)?;
         let scored = intervals[args.split.range(intervals.len())].to_vec();
         let name = format!(
             "{} ({:?} half)",
@@ -92,11 +89,7 @@ pub fn tradeoff(args: TradeoffArgs) -> Result<()> {
         (0..count)
             .map(|k| {
                 let s = crate::dataset::render_synthetic(cfg, args.synthetic_seed, k, &images)?;
-                let scored = s
-                    .frames
-                    .windows(2)
-                    .map(|w| crate::interval::Interval::new(w[0].t, w[1].t))
-                    .collect::<Result<_>>()?;
+                let scored = crate::interval::intervals_between(&s.frames)?;
                 Ok(Scene {
                     name: name.clone(),
                     frames: s.frames,
