@@ -10,6 +10,9 @@ use crate::metrics::{Stage2Metrics, Stage2Scorer};
 use crate::stage2::{SampleStats, Sampler};
 use crate::voxel::{VoxelGrid, Voxelizer};
 
+/// The median of timings, as the reports give it (kept here under its old path).
+pub use crate::stats::median;
+
 /// What a Stage 2 evaluation measured.
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct Stage2Report {
@@ -64,18 +67,4 @@ pub fn stage2(
         voxelize_us_median: median(&mut vox_us),
         sample_us_median: median(&mut smp_us),
     })
-}
-
-/// The median of `v` (0 when empty).
-pub fn median(v: &mut [f64]) -> f64 {
-    if v.is_empty() {
-        return 0.0;
-    }
-    v.sort_unstable_by(f64::total_cmp);
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        (v[n / 2 - 1] + v[n / 2]) / 2.0
-    }
 }
