@@ -630,7 +630,7 @@ pub fn report(c: &Calibration, base: &PhysicsConfig, base_name: &str) -> String 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::frame::synthetic::SceneSource;
+    use crate::frame::scene_fn::SceneSource;
     use crate::frame::FrameSource;
 
     /// A drifting grating seen by a sensor with known, unequal thresholds: the fit, started

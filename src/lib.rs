@@ -33,7 +33,7 @@ pub mod sink;
 pub mod stage1;
 pub mod stage2;
 pub mod stats;
-pub mod synthetic;
+pub mod sweeping_bar;
 pub mod tradeoff;
 pub mod transcode;
 pub mod voxel;

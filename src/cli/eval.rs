@@ -257,7 +257,7 @@ pub fn load_stage2_input(args: &Stage2Args) -> Result<(Recording, Vec<Interval>)
              (a sweeping bar, 128 x 96, 2 s, frames at {fps} fps)"
         );
         let intervals = fixed_intervals(0, 1_999_999, fps)?;
-        let recording = crate::synthetic::sweeping_bar(128, 96, 2_000_000, 1);
+        let recording = crate::sweeping_bar::recording(128, 96, 2_000_000, 1);
         return Ok((recording, intervals));
     };
     load_events_and_intervals(events_path, args.frames.as_deref(), args.fps)

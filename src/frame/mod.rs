@@ -1,5 +1,5 @@
 //! Frames with their real timestamps, from video files, image folders, Y4M, the APS frames of an
-//! AEDAT 4.0 recording, or synthetic scenes, behind one [`FrameSource`] trait.
+//! AEDAT 4.0 recording, or scene functions ([`scene_fn`]), behind one [`FrameSource`] trait.
 //!
 //! A [`Frame`] holds **linear** relative luminance, 16 bits per pixel (0 = black, 65535 = the
 //! source's full scale): the quantity a photodiode integrates. Conversion, in [`color`]:
@@ -17,7 +17,7 @@ pub mod ffmpeg;
 pub mod fixture;
 pub mod images;
 pub mod resize;
-pub mod synthetic;
+pub mod scene_fn;
 pub mod y4m;
 
 use std::path::Path;

@@ -265,7 +265,7 @@ mod tests {
     use crate::interval::fixed_intervals;
 
     fn stream(seed: u64) -> Vec<Event> {
-        crate::synthetic::sweeping_bar(64, 48, 1_000_000, seed)
+        crate::sweeping_bar::recording(64, 48, 1_000_000, seed)
             .events
             .into_events()
     }
