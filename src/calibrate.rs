@@ -22,7 +22,7 @@
 use serde::Serialize;
 
 use crate::error::{Error, Result};
-use crate::event::{sort_events, Event};
+use crate::event::{sort_events, time_slice, Event};
 use crate::frame::{Frame, FULL_SCALE};
 use crate::interval::{intervals_between, Interval};
 use crate::metrics::stage1::{score, Stage1Metrics};
@@ -321,10 +321,9 @@ impl Fitter<'_> {
             self.intervals[range.start].start(),
             self.intervals[range.end - 1].end(),
         );
-        let lo = events.partition_point(|e| e.t < start);
-        let hi = events.partition_point(|e| e.t < end);
-        let on = events[lo..hi].iter().filter(|e| e.on).count() as u64;
-        (on, (hi - lo) as u64 - on)
+        let inside = time_slice(events, start, end);
+        let on = inside.iter().filter(|e| e.on).count() as u64;
+        (on, inside.len() as u64 - on)
     }
 
     /// Events of `events` at pixels still over their interval, in the intervals of `range`:
@@ -338,9 +337,7 @@ impl Fitter<'_> {
         let (mut on, mut off, mut times) = (0, 0, Vec::new());
         for k in range.clone() {
             let iv = self.intervals[k];
-            let lo = events.partition_point(|e| e.t < iv.start());
-            let hi = events.partition_point(|e| e.t < iv.end());
-            for e in &events[lo..hi] {
+            for e in time_slice(events, iv.start(), iv.end()) {
                 if self.still[k][e.y as usize * w + e.x as usize] {
                     if e.on {
                         on += 1;
