@@ -4,7 +4,6 @@ use std::path::{Path, PathBuf};
 
 use clap::Args;
 
-use super::*;
 use crate::config::parse_size;
 use crate::error::{Error, Result};
 
@@ -59,7 +58,7 @@ pub fn tradeoff(args: TradeoffArgs) -> Result<()> {
     use crate::tradeoff::{Scene, Setting};
     let mut scenes: Vec<Vec<Scene>> = Vec::new();
     if let Some(real) = &args.real {
-        let (rec, frames) = load_recording(
+        let (rec, frames) = crate::frame::load_recording(
             real,
             args.frames.as_deref(),
             crate::frame::images::ColorSpace::Auto,

@@ -143,6 +143,44 @@ pub fn open(path: &Path, options: &SourceOptions) -> Result<Box<dyn FrameSource>
     }
 }
 
+/// Up to `max` frames of `source`, in order (fewer when it ends first).
+pub fn read_frames(source: &mut dyn FrameSource, max: usize) -> Result<Vec<Frame>> {
+    let mut out = Vec::new();
+    while out.len() < max {
+        match source.next_frame()? {
+            Some(f) => out.push(f),
+            None => break,
+        }
+    }
+    Ok(out)
+}
+
+/// A recording's events and up to `max_frames` of its frames (from `frames`, or the
+/// recording itself), checked to be of one size.
+pub fn load_recording(
+    real: &Path,
+    frames: Option<&Path>,
+    color: images::ColorSpace,
+    max_frames: usize,
+) -> Result<(crate::format::Recording, Vec<Frame>)> {
+    let events = crate::format::read_events(real)?;
+    let options = SourceOptions { fps: None, color };
+    let mut source = open(frames.unwrap_or(real), &options)?;
+    if source.size() != (events.width, events.height) {
+        return Err(Error::invalid(
+            "recording",
+            format!(
+                "frames of {} x {} for events of a {} x {} sensor",
+                source.size().0,
+                source.size().1,
+                events.width,
+                events.height
+            ),
+        ));
+    }
+    Ok((events, read_frames(source.as_mut(), max_frames)?))
+}
+
 /// Whether `path` is plain text that ffmpeg should not be given: its first 4 KiB are UTF-8 with
 /// no NUL byte, and it is not one of ffmpeg's own text inputs (an SDP session, an HLS or M3U
 /// playlist, an ffconcat list). Every video container has binary bytes in its first 4 KiB.
