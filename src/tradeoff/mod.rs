@@ -8,7 +8,7 @@
 //! [`Setting`] is a Stage 1 configuration and a Stage 2 sampler. [`measure`] runs one setting on
 //! one scene in this process, single pass, and scores it as `v2ce eval stage1` does
 //! ([`crate::eval::stage1`]); [`run`] measures every setting on every group of scenes.
-//! [`matrix`] holds what the bench measures (the settings, the scenes), [`chart`] its plot.
+//! [`matrix`] holds what the bench measures (the settings, the scenes), `chart` draws its [`plot`].
 
 mod chart;
 pub mod matrix;
