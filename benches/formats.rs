@@ -27,7 +27,7 @@ fn input() -> (u16, u16, Vec<Event>) {
         }
         Err(e) => {
             eprintln!("formats bench: {e}; using the synthetic scene");
-            let rec = v2ce::synthetic::sweeping_bar(320, 240, 4_000_000, 1);
+            let rec = v2ce::sweeping_bar::recording(320, 240, 4_000_000, 1);
             (rec.width, rec.height, rec.events.into_events())
         }
     }

@@ -48,7 +48,7 @@ fn load() -> Workload {
         Err(e) => {
             eprintln!("stage1 bench: {e}; using a synthetic moving edge");
             w.name = "synthetic edge (moving)".into();
-            let mut src = v2ce::frame::synthetic::SceneSource::moving_edge(
+            let mut src = v2ce::frame::scene_fn::SceneSource::moving_edge(
                 346,
                 260,
                 25.0,

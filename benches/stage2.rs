@@ -53,7 +53,7 @@ fn cases() -> Vec<Case> {
         );
         out.push(Case {
             name: "synthetic346",
-            recording: v2ce::synthetic::sweeping_bar(346, 260, 2_000_000, 1),
+            recording: v2ce::sweeping_bar::recording(346, 260, 2_000_000, 1),
             intervals: fixed_intervals(0, 1_999_999, 30.0).expect("valid rate"),
         });
     }

@@ -11,7 +11,7 @@
 //!
 //! `cargo run --release --example illumination_ladder`
 
-use v2ce::frame::synthetic::SceneSource;
+use v2ce::frame::scene_fn::SceneSource;
 use v2ce::frame::{Frame, FrameSource, FULL_SCALE};
 use v2ce::stage1::physics::reference_exposure;
 use v2ce::stage1::{LightModel, PhysicsConfig, PhysicsSim, Preset};

@@ -22,9 +22,9 @@
 use serde::Serialize;
 
 use crate::error::{Error, Result};
-use crate::event::{sort_events, Event};
+use crate::event::{sort_events, time_slice, Event};
 use crate::frame::{Frame, FULL_SCALE};
-use crate::interval::Interval;
+use crate::interval::{intervals_between, Interval};
 use crate::metrics::stage1::{score, Stage1Metrics};
 use crate::stage1::{PhysicsConfig, PhysicsSim, Preset};
 
@@ -179,11 +179,7 @@ pub fn calibrate(rec: &Recording, base: &PhysicsConfig, seed: u64) -> Result<Cal
             format!("{n} frames; need at least 5 (4 intervals, 2 per half)"),
         ));
     }
-    let intervals: Vec<Interval> = rec
-        .frames
-        .windows(2)
-        .map(|w| Interval::new(w[0].t, w[1].t))
-        .collect::<Result<_>>()?;
+    let intervals = intervals_between(rec.frames)?;
     let still = still_pixels(rec.frames);
     let mut fitter = Fitter {
         rec,
@@ -325,10 +321,9 @@ impl Fitter<'_> {
             self.intervals[range.start].start(),
             self.intervals[range.end - 1].end(),
         );
-        let lo = events.partition_point(|e| e.t < start);
-        let hi = events.partition_point(|e| e.t < end);
-        let on = events[lo..hi].iter().filter(|e| e.on).count() as u64;
-        (on, (hi - lo) as u64 - on)
+        let inside = time_slice(events, start, end);
+        let on = inside.iter().filter(|e| e.on).count() as u64;
+        (on, inside.len() as u64 - on)
     }
 
     /// Events of `events` at pixels still over their interval, in the intervals of `range`:
@@ -342,9 +337,7 @@ impl Fitter<'_> {
         let (mut on, mut off, mut times) = (0, 0, Vec::new());
         for k in range.clone() {
             let iv = self.intervals[k];
-            let lo = events.partition_point(|e| e.t < iv.start());
-            let hi = events.partition_point(|e| e.t < iv.end());
-            for e in &events[lo..hi] {
+            for e in time_slice(events, iv.start(), iv.end()) {
                 if self.still[k][e.y as usize * w + e.x as usize] {
                     if e.on {
                         on += 1;
@@ -634,7 +627,7 @@ pub fn report(c: &Calibration, base: &PhysicsConfig, base_name: &str) -> String 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::frame::synthetic::SceneSource;
+    use crate::frame::scene_fn::SceneSource;
     use crate::frame::FrameSource;
 
     /// A drifting grating seen by a sensor with known, unequal thresholds: the fit, started
@@ -754,10 +747,7 @@ mod tests {
                 events: &steady,
                 size: (48, 32),
             },
-            intervals: &frames
-                .windows(2)
-                .map(|w| Interval::new(w[0].t, w[1].t).unwrap())
-                .collect::<Vec<_>>(),
+            intervals: &intervals_between(&frames).unwrap(),
             still: &still,
             seed: 0,
             runs: 0,

@@ -1,14 +1,22 @@
-//! Evaluation runs: score a sampler (Stage 2) on a real or synthetic recording.
+//! Evaluation runs: score simulated events against real ones (Stage 1, [`stage1`]) or a sampler
+//! on a real or synthetic recording (Stage 2, [`stage2`]), and read what they score: real events
+//! with their frame intervals ([`load_events_and_intervals`]), the physics tier's events for a
+//! recording's own frames ([`simulate_physics`]), the built-in recording ([`sweeping_bar`]).
 
+use std::path::Path;
 use std::time::Instant;
 
-use crate::error::Result;
-use crate::event::Event;
-use crate::format::Recording;
-use crate::interval::Interval;
-use crate::metrics::{Stage2Metrics, Stage2Scorer};
+use crate::error::{Error, Result};
+use crate::event::{time_slice, Event};
+use crate::format::{self, Recording};
+use crate::interval::{fixed_intervals, intervals_from_frames, Interval};
+use crate::metrics::{Stage1Metrics, Stage2Metrics, Stage2Scorer};
+use crate::stage1::Stage1Config;
 use crate::stage2::{SampleStats, Sampler};
-use crate::voxel::{VoxelGrid, Voxelizer};
+use crate::voxel::{VoxelGrid, Voxelizer, DEFAULT_BINS};
+
+/// The median of timings, as the reports give it (kept here under its old path).
+pub use crate::stats::median;
 
 /// What a Stage 2 evaluation measured.
 #[derive(Debug, Clone, serde::Serialize)]
@@ -66,16 +74,153 @@ pub fn stage2(
     })
 }
 
-/// The median of `v` (0 when empty).
-pub fn median(v: &mut [f64]) -> f64 {
-    if v.is_empty() {
-        return 0.0;
+/// What a Stage 1 evaluation measured.
+#[derive(Debug, Clone, Copy)]
+pub struct Stage1Report {
+    /// The voxel scores (TPF1, TF1, RF1, accuracies, PMSE-2/4) and event counts.
+    pub voxels: Stage1Metrics,
+    /// The timestamp metrics between the two streams (C-METE, METE, PGER).
+    pub timing: Stage2Metrics,
+}
+
+/// Scores `sim` against `real` (both sorted by time) on `intervals` for a sensor of `size`:
+/// both voxelized with [`DEFAULT_BINS`] nodes per interval and compared, and the Stage 2
+/// timestamp metrics of `sim`'s events against `real`'s in each interval.
+pub fn stage1(
+    real: &[Event],
+    sim: &[Event],
+    intervals: &[Interval],
+    size: (u16, u16),
+) -> Result<Stage1Report> {
+    let voxels = crate::metrics::stage1::score(real, sim, intervals, size.0, size.1, DEFAULT_BINS)?;
+    let mut scorer = Stage2Scorer::new();
+    for iv in intervals {
+        scorer.add_interval(
+            *iv,
+            time_slice(real, iv.start(), iv.end()),
+            time_slice(sim, iv.start(), iv.end()),
+        );
     }
-    v.sort_unstable_by(f64::total_cmp);
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
+    Ok(Stage1Report {
+        voxels,
+        timing: scorer.finish(),
+    })
+}
+
+/// Checks that every event of `events` (read from `name`) lies on a `size` sensor.
+pub fn check_sensor(events: &[Event], size: (u16, u16), name: &Path) -> Result<()> {
+    match events.iter().find(|e| e.x >= size.0 || e.y >= size.1) {
+        Some(e) => Err(Error::format(
+            name,
+            format!(
+                "event at ({}, {}) outside the real {} x {} sensor",
+                e.x, e.y, size.0, size.1
+            ),
+        )),
+        None => Ok(()),
+    }
+}
+
+/// The built-in recording `v2ce eval stage2` scores without real events: the sweeping bar
+/// (128 x 96, 2 s) with fixed intervals at `fps`.
+pub fn sweeping_bar(fps: f64) -> Result<(Recording, Vec<Interval>)> {
+    let intervals = fixed_intervals(0, 1_999_999, fps)?;
+    Ok((
+        crate::sweeping_bar::recording(128, 96, 2_000_000, 1),
+        intervals,
+    ))
+}
+
+/// Whether `path` names an AEDAT 4.0 file (by its extension).
+pub fn is_aedat4(path: &Path) -> bool {
+    path.extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("aedat4"))
+}
+
+/// Reads real events and their frame intervals: from `frames` (an .aedat4 with APS frames or
+/// IJRR images.txt), from a fixed `fps` starting at the first event, or, when neither is given,
+/// from the APS frames of an .aedat4 event file (decoded once with its events; `note` is told
+/// so first).
+pub fn load_events_and_intervals(
+    events_path: &Path,
+    frames: Option<&Path>,
+    fps: Option<f64>,
+    note: impl FnOnce(&str),
+) -> Result<(Recording, Vec<Interval>)> {
+    let own_frames =
+        fps.is_none() && is_aedat4(events_path) && frames.is_none_or(|f| f == events_path);
+    let (recording, frames) = if own_frames {
+        if frames.is_none() {
+            note(&format!(
+                "no --frames or --fps: using the APS frames of {}",
+                events_path.display()
+            ));
+        }
+        let (recording, frames) = format::aedat4::read(events_path)?;
+        (
+            recording,
+            Some(format::require_frames(events_path, frames)?),
+        )
     } else {
-        (v[n / 2 - 1] + v[n / 2]) / 2.0
+        let frames = match frames {
+            Some(path) => Some(format::read_frame_times(path)?),
+            None => None,
+        };
+        (format::read_events(events_path)?, frames)
+    };
+    let intervals = if let Some(frames) = frames {
+        intervals_from_frames(&frames)?
+    } else if let Some(fps) = fps {
+        let ev = recording.events.events();
+        match (ev.first(), ev.last()) {
+            (Some(a), Some(b)) => fixed_intervals(a.t, b.t, fps)?,
+            _ => Vec::new(),
+        }
+    } else {
+        return Err(Error::invalid(
+            "arguments",
+            "give --frames FILE or --fps F to define the frame intervals",
+        ));
+    };
+    Ok((recording, intervals))
+}
+
+/// The physics tier's events, with `stage1`'s preset and `seed`, for the frames of the
+/// recording `real` of `size`: its own APS frames, or those of `frames` when that is a frame
+/// source rather than an .aedat4 (`v2ce eval stage1` without `--sim`). `note` is told what is
+/// simulated before it is.
+pub fn simulate_physics(
+    real: &Path,
+    frames: Option<&Path>,
+    stage1: &Stage1Config,
+    seed: u64,
+    size: (u16, u16),
+    note: impl FnOnce(&str),
+) -> Result<Recording> {
+    let path = match frames {
+        Some(f) if !is_aedat4(f) => f,
+        _ => real,
+    };
+    let mut source = crate::frame::open(path, &Default::default())?;
+    if source.size() != size {
+        return Err(Error::invalid(
+            "eval stage1",
+            format!(
+                "frames of {} x {} for a {} x {} recording",
+                source.size().0,
+                source.size().1,
+                size.0,
+                size.1
+            ),
+        ));
     }
+    let frames = crate::frame::read_frames(source.as_mut(), usize::MAX)?;
+    note(&format!(
+        "simulating {} frames of {} with the physics tier (preset {})",
+        frames.len(),
+        path.display(),
+        stage1.preset_name()
+    ));
+    let events = crate::calibrate::simulate(&frames, size, &stage1.physics_config(), seed)?;
+    Ok(Recording::new(events, Some(size)))
 }

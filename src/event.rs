@@ -75,10 +75,15 @@ impl EventPacket {
 
     /// The events with `start <= t < end` (a binary search; the packet is sorted).
     pub fn time_slice(&self, start: i64, end: i64) -> &[Event] {
-        let lo = self.events.partition_point(|e| e.t < start);
-        let hi = self.events.partition_point(|e| e.t < end);
-        &self.events[lo..hi.max(lo)]
+        time_slice(&self.events, start, end)
     }
+}
+
+/// The events of `events` (sorted by time) with `start <= t < end`, by binary search.
+pub fn time_slice(events: &[Event], start: i64, end: i64) -> &[Event] {
+    let lo = events.partition_point(|e| e.t < start);
+    let hi = events.partition_point(|e| e.t < end);
+    &events[lo..hi.max(lo)]
 }
 
 /// Sorts events by [`Event::order_key`].

@@ -4,6 +4,7 @@
 //! assumes a frame rate unless the user asks for fixed intervals explicitly.
 
 use crate::error::{Error, Result};
+use crate::frame::Frame;
 
 /// A half-open time span `[start, end)` in microseconds, with `end > start`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -84,6 +85,12 @@ pub fn intervals_from_frames(frame_times: &[i64]) -> Result<Vec<Interval>> {
         .collect()
 }
 
+/// The intervals between consecutive `frames`, by their times (as [`intervals_from_frames`]).
+pub fn intervals_between(frames: &[Frame]) -> Result<Vec<Interval>> {
+    let times: Vec<i64> = frames.iter().map(|f| f.t).collect();
+    intervals_from_frames(&times)
+}
+
 /// Fixed-rate intervals covering `[first, last]` at `fps` frames per second.
 ///
 /// Boundaries sit at `first + floor(i * 1e6 / fps)` microseconds (the reference's
@@ -125,6 +132,21 @@ mod tests {
     fn repeated_frame_time_is_an_error() {
         let err = intervals_from_frames(&[0, 10, 10]).unwrap_err();
         assert!(err.to_string().contains("frame 2"), "{err}");
+    }
+
+    #[test]
+    fn intervals_between_frames_follow_their_times() {
+        let frame = |t| Frame {
+            t,
+            width: 1,
+            height: 1,
+            luma: vec![0],
+            exposure_us: None,
+        };
+        let iv = intervals_between(&[frame(5), frame(40), frame(90)]).unwrap();
+        assert_eq!(iv, intervals_from_frames(&[5, 40, 90]).unwrap());
+        assert!(intervals_between(&[frame(5), frame(5)]).is_err());
+        assert!(intervals_between(&[frame(5)]).unwrap().is_empty());
     }
 
     #[test]

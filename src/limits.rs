@@ -85,12 +85,8 @@ pub fn memory_available() -> Option<u64> {
     // SAFETY: getrlimit writes the struct it is given.
     let ok = unsafe { libc::getrlimit(libc::RLIMIT_AS, &mut limit) } == 0;
     if ok && limit.rlim_cur != libc::RLIM_INFINITY {
-        let pages = read("/proc/self/statm")
-            .and_then(|s| s.split_whitespace().next()?.parse::<u64>().ok())
-            .unwrap_or(0);
-        // SAFETY: sysconf only reads a system constant.
-        let page = u64::try_from(unsafe { libc::sysconf(libc::_SC_PAGESIZE) }).unwrap_or(4096);
-        take(limit.rlim_cur.saturating_sub(pages * page));
+        let taken = crate::process::virtual_bytes().unwrap_or(0);
+        take(limit.rlim_cur.saturating_sub(taken));
     }
     let max = read("/sys/fs/cgroup/memory.max").and_then(|s| s.trim().parse::<u64>().ok());
     if let Some(max) = max {

@@ -40,7 +40,7 @@ fn check_file(py: &Path, reader: &str, path: &Path, expected: &Path, offset: i64
 
 /// A test stream: a sweeping bar from a Unix-epoch start (so EVT files need their offset).
 fn stream() -> (u16, u16, Vec<Event>) {
-    let rec = v2ce::synthetic::sweeping_bar(128, 96, 500_000, 3);
+    let rec = v2ce::sweeping_bar::recording(128, 96, 500_000, 3);
     let t0 = 1_700_000_000_000_000;
     let events = rec
         .events

@@ -203,7 +203,7 @@ fn mutations(data: &[u8], rng: &mut Rng, count: usize) -> Vec<(String, Vec<u8>)>
 
 /// A short recording: a bar sweeping a 64 x 48 sensor, with a Unix-epoch start.
 fn events() -> Vec<Event> {
-    let rec = v2ce::synthetic::sweeping_bar(64, 48, 200_000, 2);
+    let rec = v2ce::sweeping_bar::recording(64, 48, 200_000, 2);
     rec.events
         .events()
         .iter()

@@ -2,7 +2,7 @@
 //! and the frame sources.
 
 use v2ce::event::Event;
-use v2ce::frame::synthetic::SceneSource;
+use v2ce::frame::scene_fn::SceneSource;
 use v2ce::frame::{Frame, FrameSource};
 use v2ce::stage1::{LightModel, PhysicsConfig, PhysicsSim, Preset};
 

@@ -9,6 +9,9 @@
 pub mod negotiate;
 pub mod pixels;
 
+#[cfg(any(all(target_os = "linux", feature = "v4l"), feature = "nokhwa"))]
+mod camera_source;
+
 #[cfg(feature = "nokhwa")]
 #[cfg_attr(all(target_os = "linux", feature = "v4l"), allow(dead_code))]
 mod nokhwa_backend;

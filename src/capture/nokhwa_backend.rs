@@ -20,6 +20,7 @@ use nokhwa::utils::{
 };
 use nokhwa::Camera;
 
+use super::camera_source::{self, CameraSource};
 use super::negotiate::{self, Offer};
 use super::pixels::{self, Layout};
 use super::{CameraConfig, CameraInfo, PixelFormat};
@@ -119,7 +120,6 @@ struct NokhwaSource {
     layout: Layout,
     fps: u32,
     frames: Receiver<Result<Frame>>,
-    pending: Option<Frame>,
 }
 
 /// What the camera thread reports once the stream runs.
@@ -167,16 +167,13 @@ pub(super) fn open(source: &str, config: &CameraConfig) -> Result<Box<dyn FrameS
             format!("{source}: the camera thread ended while opening"),
         )
     })??;
-    let mut src = NokhwaSource {
+    CameraSource::start(NokhwaSource {
         source: source.to_string(),
         name: opened.name,
         layout: opened.layout,
         fps: opened.fps,
         frames: frames_rx,
-        pending: None,
-    };
-    src.pending = src.read()?;
-    Ok(Box::new(src))
+    })
 }
 
 /// On the camera thread: opens, negotiates and starts the stream.
@@ -285,7 +282,11 @@ fn stream(source: &str, mut camera: Camera, layout: Layout, out: &Sender<Result<
     }
 }
 
-impl NokhwaSource {
+impl camera_source::Stream for NokhwaSource {
+    fn layout(&self) -> &Layout {
+        &self.layout
+    }
+
     fn read(&mut self) -> Result<Option<Frame>> {
         match self.frames.recv() {
             Ok(frame) => frame.map(Some),
@@ -294,20 +295,6 @@ impl NokhwaSource {
                 format!("{}: the camera thread has stopped", self.source),
             )),
         }
-    }
-}
-
-impl FrameSource for NokhwaSource {
-    fn size(&self) -> (u16, u16) {
-        // Checked by the first decoded frame at open.
-        (self.layout.width as u16, self.layout.height as u16)
-    }
-
-    fn next_frame(&mut self) -> Result<Option<Frame>> {
-        if let Some(f) = self.pending.take() {
-            return Ok(Some(f));
-        }
-        self.read()
     }
 
     fn describe(&self) -> String {

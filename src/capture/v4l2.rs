@@ -15,6 +15,7 @@ use v4l::video::capture::Parameters;
 use v4l::video::Capture;
 use v4l::{Device, Format, FourCC, Fraction};
 
+use super::camera_source::{self, CameraSource};
 use super::negotiate::{self, Interval, Offer, Rates, Sizes};
 use super::pixels::{self, Layout};
 use super::{CameraConfig, CameraInfo, PixelFormat};
@@ -184,8 +185,6 @@ struct V4l2Source {
     fps: Option<f64>,
     /// `Option` only so that `Drop` can take it (see there).
     stream: Option<Stream<'static>>,
-    /// The first frame, read while opening to prove the stream works.
-    pending: Option<Frame>,
     last_t: Option<i64>,
     // Dropped after the stream (declaration order); the stream holds its own handle anyway.
     _device: Device,
@@ -256,21 +255,22 @@ pub(super) fn open(source: &str, config: &CameraConfig) -> Result<Box<dyn FrameS
     let frame_s = fps.map(|f| 1.0 / f).unwrap_or(1.0);
     stream.set_timeout(Duration::from_secs_f64((4.0 * frame_s).clamp(2.0, 30.0)));
 
-    let mut src = V4l2Source {
+    CameraSource::start(V4l2Source {
         path,
         name: caps.card,
         layout,
         fps,
         stream: Some(stream),
-        pending: None,
         last_t: None,
         _device: dev,
-    };
-    src.pending = src.read()?;
-    Ok(Box::new(src))
+    })
 }
 
-impl V4l2Source {
+impl camera_source::Stream for V4l2Source {
+    fn layout(&self) -> &Layout {
+        &self.layout
+    }
+
     /// Dequeues buffers until one decodes to a frame later than the previous one.
     fn read(&mut self) -> Result<Option<Frame>> {
         let Some(stream) = self.stream.as_mut() else {
@@ -316,20 +316,6 @@ impl V4l2Source {
                 }));
             }
         }
-    }
-}
-
-impl FrameSource for V4l2Source {
-    fn size(&self) -> (u16, u16) {
-        // Checked by the first decoded frame at open.
-        (self.layout.width as u16, self.layout.height as u16)
-    }
-
-    fn next_frame(&mut self) -> Result<Option<Frame>> {
-        if let Some(f) = self.pending.take() {
-            return Ok(Some(f));
-        }
-        self.read()
     }
 
     fn describe(&self) -> String {

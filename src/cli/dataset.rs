@@ -193,7 +193,7 @@ pub fn dataset_synthetic(args: SyntheticArgs) -> Result<()> {
 
 /// Runs `v2ce dataset recording`.
 pub fn dataset_recording(args: DatasetRecordingArgs) -> Result<()> {
-    let (real, frames) = load_recording(
+    let (real, frames) = crate::frame::load_recording(
         &args.real,
         args.frames.as_deref(),
         args.color,
@@ -224,7 +224,7 @@ pub fn dataset_recording(args: DatasetRecordingArgs) -> Result<()> {
 pub fn calibrate(args: CalibrateArgs) -> Result<()> {
     check_output(&args.output, args.force)?;
     let base = crate::stage1::Preset::from_name(&args.preset)?;
-    let (real, frames) = load_recording(
+    let (real, frames) = crate::frame::load_recording(
         &args.real,
         args.frames.as_deref(),
         args.color,

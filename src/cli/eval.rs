@@ -1,14 +1,14 @@
 //! `v2ce eval stage1` and `v2ce eval stage2`: scores against real recordings.
 
 use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use clap::{Args, Subcommand};
 
 use crate::config::Config;
 use crate::error::{Error, Result};
 use crate::format::{self, csv, Recording};
-use crate::interval::{fixed_intervals, intervals_from_frames, Interval};
+use crate::interval::Interval;
 use crate::stage2::SamplerKind;
 
 /// The `v2ce eval` subcommands.
@@ -93,7 +93,7 @@ pub struct Stage2Args {
 /// Runs `v2ce eval stage1`.
 pub fn eval_stage1(args: Stage1Args) -> Result<()> {
     let (real, intervals) =
-        load_events_and_intervals(&args.real, args.frames.as_deref(), args.fps)?;
+        crate::eval::load_events_and_intervals(&args.real, args.frames.as_deref(), args.fps, note)?;
     let intervals = intervals[args.split.range(intervals.len())].to_vec();
     if intervals.is_empty() {
         return Err(Error::invalid(
@@ -101,45 +101,26 @@ pub fn eval_stage1(args: Stage1Args) -> Result<()> {
             format!("no frame intervals in the {:?} part", args.split),
         ));
     }
+    let size = (real.width, real.height);
     let sim = match &args.sim {
         Some(path) => format::read_events(path)?,
-        None => simulate_for_eval(&args, (real.width, real.height))?,
+        None => {
+            let mut stage1 = crate::stage1::Stage1Config::default();
+            match &args.preset_file {
+                Some(f) => stage1.load_preset_file(f)?,
+                None => stage1.preset = crate::stage1::Preset::from_name(&args.preset)?,
+            }
+            let frames = args.frames.as_deref();
+            crate::eval::simulate_physics(&args.real, frames, &stage1, args.seed, size, note)?
+        }
     };
     let sim_name = args
         .sim
         .clone()
         .unwrap_or_else(|| PathBuf::from("the simulated events"));
-    if let Some(e) = sim
-        .events
-        .events()
-        .iter()
-        .find(|e| e.x >= real.width || e.y >= real.height)
-    {
-        return Err(Error::format(
-            &sim_name,
-            format!(
-                "event at ({}, {}) outside the real {} x {} sensor",
-                e.x, e.y, real.width, real.height
-            ),
-        ));
-    }
-    let m = crate::metrics::stage1::score(
-        real.events.events(),
-        sim.events.events(),
-        &intervals,
-        real.width,
-        real.height,
-        crate::voxel::DEFAULT_BINS,
-    )?;
-    let mut scorer = crate::metrics::Stage2Scorer::new();
-    for iv in &intervals {
-        scorer.add_interval(
-            *iv,
-            real.events.time_slice(iv.start(), iv.end()),
-            sim.events.time_slice(iv.start(), iv.end()),
-        );
-    }
-    let t = scorer.finish();
+    crate::eval::check_sensor(sim.events.events(), size, &sim_name)?;
+    let report = crate::eval::stage1(real.events.events(), sim.events.events(), &intervals, size)?;
+    let (m, t) = (report.voxels, report.timing);
     let mut out = std::io::stdout().lock();
     let text = if args.json {
         let mut v = serde_json::to_value(m).map_err(|e| Error::invalid("json", e.to_string()))?;
@@ -174,6 +155,11 @@ pub fn eval_stage1(args: Stage1Args) -> Result<()> {
         )
     };
     writeln!(out, "{text}").map_err(|e| Error::io("stdout", e))
+}
+
+/// Prints a note of the library's on stderr.
+fn note(line: &str) {
+    eprintln!("v2ce: {line}");
 }
 
 /// Runs `v2ce eval stage2`.
@@ -256,100 +242,7 @@ pub fn load_stage2_input(args: &Stage2Args) -> Result<(Recording, Vec<Interval>)
             "v2ce: no --events given: using the built-in synthetic recording \
              (a sweeping bar, 128 x 96, 2 s, frames at {fps} fps)"
         );
-        let intervals = fixed_intervals(0, 1_999_999, fps)?;
-        let recording = crate::synthetic::sweeping_bar(128, 96, 2_000_000, 1);
-        return Ok((recording, intervals));
+        return crate::eval::sweeping_bar(fps);
     };
-    load_events_and_intervals(events_path, args.frames.as_deref(), args.fps)
-}
-
-/// `eval stage1` without `--sim`: the physics tier's events for the recording's own frames
-/// (its APS frames, or `--frames` when that is a frame source) with the chosen preset.
-pub fn simulate_for_eval(args: &Stage1Args, size: (u16, u16)) -> Result<Recording> {
-    let mut stage1 = crate::stage1::Stage1Config::default();
-    match &args.preset_file {
-        Some(f) => stage1.load_preset_file(f)?,
-        None => stage1.preset = crate::stage1::Preset::from_name(&args.preset)?,
-    }
-    let path = match &args.frames {
-        Some(f) if !is_aedat4(f) => f.clone(),
-        _ => args.real.clone(),
-    };
-    let mut source = crate::frame::open(&path, &Default::default())?;
-    if source.size() != size {
-        return Err(Error::invalid(
-            "eval stage1",
-            format!(
-                "frames of {} x {} for a {} x {} recording",
-                source.size().0,
-                source.size().1,
-                size.0,
-                size.1
-            ),
-        ));
-    }
-    let mut frames = Vec::new();
-    while let Some(f) = source.next_frame()? {
-        frames.push(f);
-    }
-    eprintln!(
-        "v2ce: simulating {} frames of {} with the physics tier (preset {})",
-        frames.len(),
-        path.display(),
-        stage1.preset_name()
-    );
-    let events = crate::calibrate::simulate(&frames, size, &stage1.physics_config(), args.seed)?;
-    Ok(Recording::new(events, Some(size)))
-}
-
-/// Whether `path` names an AEDAT 4.0 file (by its extension).
-pub fn is_aedat4(path: &Path) -> bool {
-    path.extension()
-        .is_some_and(|e| e.eq_ignore_ascii_case("aedat4"))
-}
-
-/// Reads real events and their frame intervals: from `frames` (an .aedat4 with APS frames or
-/// IJRR images.txt), from a fixed `fps` starting at the first event, or, when neither is given,
-/// from the APS frames of an .aedat4 event file (decoded once with its events).
-pub fn load_events_and_intervals(
-    events_path: &Path,
-    frames: Option<&Path>,
-    fps: Option<f64>,
-) -> Result<(Recording, Vec<Interval>)> {
-    let own_frames =
-        fps.is_none() && is_aedat4(events_path) && frames.is_none_or(|f| f == events_path);
-    let (recording, frames) = if own_frames {
-        if frames.is_none() {
-            eprintln!(
-                "v2ce: no --frames or --fps: using the APS frames of {}",
-                events_path.display()
-            );
-        }
-        let (recording, frames) = format::aedat4::read(events_path)?;
-        (
-            recording,
-            Some(format::require_frames(events_path, frames)?),
-        )
-    } else {
-        let frames = match frames {
-            Some(path) => Some(format::read_frame_times(path)?),
-            None => None,
-        };
-        (format::read_events(events_path)?, frames)
-    };
-    let intervals = if let Some(frames) = frames {
-        intervals_from_frames(&frames)?
-    } else if let Some(fps) = fps {
-        let ev = recording.events.events();
-        match (ev.first(), ev.last()) {
-            (Some(a), Some(b)) => fixed_intervals(a.t, b.t, fps)?,
-            _ => Vec::new(),
-        }
-    } else {
-        return Err(Error::invalid(
-            "arguments",
-            "give --frames FILE or --fps F to define the frame intervals",
-        ));
-    };
-    Ok((recording, intervals))
+    crate::eval::load_events_and_intervals(events_path, args.frames.as_deref(), args.fps, note)
 }

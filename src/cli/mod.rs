@@ -244,41 +244,6 @@ pub fn check_output(path: &Path, force: bool) -> Result<()> {
     Ok(())
 }
 
-/// A recording's events and up to `max_frames` of its frames (from `frames`, or the
-/// recording itself), checked to be of one size.
-pub fn load_recording(
-    real: &Path,
-    frames: Option<&Path>,
-    color: crate::frame::images::ColorSpace,
-    max_frames: usize,
-) -> Result<(format::Recording, Vec<crate::frame::Frame>)> {
-    use crate::frame::FrameSource;
-    let events = format::read_events(real)?;
-    let options = crate::frame::SourceOptions { fps: None, color };
-    let frames_path = frames.unwrap_or(real);
-    let mut source: Box<dyn FrameSource> = crate::frame::open(frames_path, &options)?;
-    if source.size() != (events.width, events.height) {
-        return Err(Error::invalid(
-            "recording",
-            format!(
-                "frames of {} x {} for events of a {} x {} sensor",
-                source.size().0,
-                source.size().1,
-                events.width,
-                events.height
-            ),
-        ));
-    }
-    let mut out = Vec::new();
-    while out.len() < max_frames {
-        match source.next_frame()? {
-            Some(f) => out.push(f),
-            None => break,
-        }
-    }
-    Ok((events, out))
-}
-
 /// `frames/total frames (pct), N events, rate, ETA` (without a total: frames, events, rate).
 pub fn progress_line(frames: u64, total: Option<u64>, events: u64, seconds: f64) -> String {
     let rate = frames as f64 / seconds.max(1e-9);

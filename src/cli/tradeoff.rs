@@ -1,10 +1,9 @@
 //! `v2ce bench tradeoff`: the speed/accuracy trade measured over Stage 1 settings.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use clap::Args;
 
-use super::*;
 use crate::config::parse_size;
 use crate::error::{Error, Result};
 
@@ -54,180 +53,62 @@ pub struct TradeoffArgs {
 
 /// Runs `v2ce bench tradeoff`.
 pub fn tradeoff(args: TradeoffArgs) -> Result<()> {
-    use crate::stage1::{Preset, Stage1Config, Tier};
-    use crate::stage2::SamplerKind;
-    use crate::tradeoff::{Scene, Setting};
-    let mut scenes: Vec<Vec<Scene>> = Vec::new();
+    use crate::tradeoff::{self, Scene};
+    let mut groups: Vec<Vec<Scene>> = Vec::new();
     if let Some(real) = &args.real {
-        let (rec, frames) = load_recording(
+        groups.push(vec![Scene::recording(
             real,
             args.frames.as_deref(),
-            crate::frame::images::ColorSpace::Auto,
-            100_000,
-        )?;
-        let intervals: Vec<crate::interval::Interval> = frames
-            .windows(2)
-            .map(|w| crate::interval::Interval::new(w[0].t, w[1].t))
-            .collect::<Result<_>>()?;
-        let scored = intervals[args.split.range(intervals.len())].to_vec();
-        let name = format!(
-            "{} ({:?} half)",
-            real.file_name().unwrap_or_default().to_string_lossy(),
-            args.split
-        )
-        .to_lowercase();
-        scenes.push(vec![Scene {
-            name,
-            frames,
-            encoding: crate::frame::SourceEncoding::Linear,
-            events: rec.events.events().to_vec(),
-            scored,
-        }]);
+            args.split,
+        )?]);
     }
     let images = match &args.images {
         Some(dir) if args.synthetic > 0 || args.still > 0 => crate::dataset::load_images(dir)?,
         _ => Vec::new(),
     };
-    let synthetic = |count: usize, cfg: &crate::dataset::SyntheticConfig, name: String| {
-        (0..count)
-            .map(|k| {
-                let s = crate::dataset::render_synthetic(cfg, args.synthetic_seed, k, &images)?;
-                let scored = s
-                    .frames
-                    .windows(2)
-                    .map(|w| crate::interval::Interval::new(w[0].t, w[1].t))
-                    .collect::<Result<_>>()?;
-                Ok(Scene {
-                    name: name.clone(),
-                    frames: s.frames,
-                    encoding: crate::frame::SourceEncoding::Linear,
-                    events: s.events,
-                    scored,
-                })
-            })
-            .collect::<Result<Vec<Scene>>>()
-    };
+    let seed = args.synthetic_seed;
     if args.synthetic > 0 {
-        let cfg = crate::dataset::SyntheticConfig {
-            size: parse_size(&args.size)?,
-            ..Default::default()
-        };
-        let name = format!("synthetic seed {}", args.synthetic_seed);
-        scenes.push(synthetic(args.synthetic, &cfg, name)?);
+        let size = parse_size(&args.size)?;
+        groups.push(tradeoff::synthetic_scenes(
+            args.synthetic,
+            size,
+            seed,
+            &images,
+        )?);
     }
     if args.still > 0 {
-        let cfg = crate::dataset::SyntheticConfig {
-            size: parse_size(&args.still_size)?,
-            input_noise: 0.0,
-            pace: crate::dataset::Pace {
-                still: true,
-                ..Default::default()
-            },
-            ..Default::default()
-        };
-        let name = format!("still camera, seed {}", args.synthetic_seed);
-        scenes.push(synthetic(args.still, &cfg, name)?);
+        let size = parse_size(&args.still_size)?;
+        groups.push(tradeoff::still_scenes(args.still, size, seed, &images)?);
     }
-    if scenes.is_empty() {
+    if groups.is_empty() {
         return Err(Error::invalid(
             "bench tradeoff",
             "nothing to score on: give --real, --synthetic N and/or --still N",
         ));
     }
-    let physics = |preset: Preset| Setting {
-        label: format!("physics {}", preset.name()),
-        stage1: Stage1Config {
-            preset,
-            ..Default::default()
-        },
-        sampler: SamplerKind::Moment,
-    };
-    let learned = |label: &str, model: &Path, window: usize, threads: usize, sampler| {
-        let mut stage1 = Stage1Config {
-            tier: Tier::Learned,
-            ..Default::default()
-        };
-        stage1.learned.model = model.to_path_buf();
-        stage1.learned.window = window;
-        stage1.learned.threads = threads;
-        Setting {
-            label: format!(
-                "{label} L={window} {threads} thread{} {}",
-                if threads == 1 { "" } else { "s" },
-                sampler_name(sampler)
-            ),
-            stage1,
-            sampler,
+    let settings = tradeoff::settings(&args.model);
+    let rows = tradeoff::run(&groups, &settings, |row| {
+        if args.json {
+            let text =
+                serde_json::to_string(row).map_err(|e| Error::invalid("report", e.to_string()))?;
+            println!("{text}");
+        } else {
+            eprintln!(
+                "v2ce: {} on {}: {:.1} pairs/s, TF1 {:.3}, ratio {:.2}",
+                row.setting, row.scene, row.pairs_per_s, row.tf1, row.count_ratio
+            );
         }
-    };
-    let builtin = Path::new("");
-    let mut settings = vec![
-        physics(Preset::Davis346),
-        physics(Preset::Dvxplorer),
-        physics(Preset::Ideal),
-        learned("v2ce-small", builtin, 16, 2, SamplerKind::Moment),
-        learned("v2ce-small", builtin, 8, 2, SamplerKind::Moment),
-        learned("v2ce-small", builtin, 4, 2, SamplerKind::Moment),
-        learned("v2ce-small", builtin, 16, 1, SamplerKind::Moment),
-        learned("v2ce-small", builtin, 16, 2, SamplerKind::Ldati),
-    ];
-    for floor in [0.0f32, 0.05, 0.2] {
-        let mut s = learned("v2ce-small", builtin, 16, 2, SamplerKind::Moment);
-        s.stage1.learned.floor = Some(floor);
-        s.label = format!("{} floor {floor}", s.label);
-        settings.push(s);
-    }
-    // The network on whole frames, and on crops with margins inside its receptive field.
-    let mut whole = learned("v2ce-small", builtin, 16, 2, SamplerKind::Moment);
-    whole.stage1.learned.roi = false;
-    whole.label = format!("{} whole frames", whole.label);
-    settings.push(whole);
-    for margin in [64usize, 32] {
-        let mut s = learned("v2ce-small", builtin, 16, 2, SamplerKind::Moment);
-        s.stage1.learned.roi_margin = Some(margin);
-        s.label = format!("{} roi margin {margin}", s.label);
-        settings.push(s);
-    }
-    for m in &args.model {
-        let name = m
-            .file_stem()
-            .unwrap_or_default()
-            .to_string_lossy()
-            .to_string();
-        settings.push(learned(&name, m, 16, 2, SamplerKind::Moment));
-    }
-    let mut rows = Vec::new();
-    for group in &scenes {
-        let name = group.first().map(|s| s.name.clone()).unwrap_or_default();
-        for setting in &settings {
-            let each = group
-                .iter()
-                .map(|scene| crate::tradeoff::measure(setting, scene))
-                .collect::<Result<Vec<_>>>()?;
-            if let Some(row) = crate::tradeoff::combine(&each, &name) {
-                if args.json {
-                    let text = serde_json::to_string(&row)
-                        .map_err(|e| Error::invalid("report", e.to_string()))?;
-                    println!("{text}");
-                } else {
-                    eprintln!(
-                        "v2ce: {} on {}: {:.1} pairs/s, TF1 {:.3}, ratio {:.2}",
-                        row.setting, row.scene, row.pairs_per_s, row.tf1, row.count_ratio
-                    );
-                }
-                rows.push(row);
-            }
-        }
-    }
+        Ok(())
+    })?;
     if let Some(path) = &args.plot {
-        crate::tradeoff::plot(&rows, path)?;
+        tradeoff::plot(&rows, path)?;
         eprintln!("v2ce: plot written to {}", path.display());
     }
     if !args.json {
-        println!("{}", crate::tradeoff::table(&rows));
-        for group in &scenes {
-            let name = group.first().map(|s| s.name.clone()).unwrap_or_default();
-            let front: Vec<&str> = crate::tradeoff::pareto(&rows, &name)
+        println!("{}", tradeoff::table(&rows));
+        for group in &groups {
+            let name = tradeoff::group_name(group);
+            let front: Vec<&str> = tradeoff::pareto(&rows, &name)
                 .iter()
                 .map(|r| r.setting.as_str())
                 .collect();
@@ -238,12 +119,4 @@ pub fn tradeoff(args: TradeoffArgs) -> Result<()> {
         }
     }
     Ok(())
-}
-
-/// The sampler's name as configs and flags spell it.
-pub fn sampler_name(s: crate::stage2::SamplerKind) -> String {
-    serde_json::to_value(s)
-        .ok()
-        .and_then(|v| v.as_str().map(str::to_string))
-        .unwrap_or_default()
 }

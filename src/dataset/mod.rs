@@ -32,7 +32,7 @@ use rand_xoshiro::Xoshiro256PlusPlus;
 use serde::Serialize;
 
 use crate::error::{Error, Result};
-use crate::event::{sort_events, Event};
+use crate::event::{sort_events, time_slice, Event};
 use crate::format::npz::{write_arrays, Array};
 use crate::frame::{Frame, FULL_SCALE};
 use crate::interval::Interval;
@@ -184,11 +184,10 @@ fn voxels_of(events: &[Event], times: &[i64], size: (u16, u16)) -> Result<(Vec<f
     let mut held = 0u64;
     for w in times.windows(2) {
         let interval = Interval::new(w[0], w[1])?;
-        let lo = events.partition_point(|e| e.t < w[0]);
-        let hi = events.partition_point(|e| e.t < w[1]);
-        held += (hi - lo) as u64;
+        let inside = time_slice(events, w[0], w[1]);
+        held += inside.len() as u64;
         let mut grid = VoxelGrid::new(size.0, size.1, DEFAULT_BINS)?;
-        voxelizer.voxelize_into(&events[lo..hi], interval, &mut grid)?;
+        voxelizer.voxelize_into(inside, interval, &mut grid)?;
         out.extend(grid.to_dense());
     }
     Ok((out, held))

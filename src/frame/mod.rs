@@ -1,5 +1,5 @@
 //! Frames with their real timestamps, from video files, image folders, Y4M, the APS frames of an
-//! AEDAT 4.0 recording, or synthetic scenes, behind one [`FrameSource`] trait.
+//! AEDAT 4.0 recording, or scene functions ([`scene_fn`]), behind one [`FrameSource`] trait.
 //!
 //! A [`Frame`] holds **linear** relative luminance, 16 bits per pixel (0 = black, 65535 = the
 //! source's full scale): the quantity a photodiode integrates. Conversion, in [`color`]:
@@ -17,7 +17,7 @@ pub mod ffmpeg;
 pub mod fixture;
 pub mod images;
 pub mod resize;
-pub mod synthetic;
+pub mod scene_fn;
 pub mod y4m;
 
 use std::path::Path;
@@ -141,6 +141,44 @@ pub fn open(path: &Path, options: &SourceOptions) -> Result<Box<dyn FrameSource>
         )),
         _ => Ok(Box::new(ffmpeg::FfmpegSource::open(path)?)),
     }
+}
+
+/// Up to `max` frames of `source`, in order (fewer when it ends first).
+pub fn read_frames(source: &mut dyn FrameSource, max: usize) -> Result<Vec<Frame>> {
+    let mut out = Vec::new();
+    while out.len() < max {
+        match source.next_frame()? {
+            Some(f) => out.push(f),
+            None => break,
+        }
+    }
+    Ok(out)
+}
+
+/// A recording's events and up to `max_frames` of its frames (from `frames`, or the
+/// recording itself), checked to be of one size.
+pub fn load_recording(
+    real: &Path,
+    frames: Option<&Path>,
+    color: images::ColorSpace,
+    max_frames: usize,
+) -> Result<(crate::format::Recording, Vec<Frame>)> {
+    let events = crate::format::read_events(real)?;
+    let options = SourceOptions { fps: None, color };
+    let mut source = open(frames.unwrap_or(real), &options)?;
+    if source.size() != (events.width, events.height) {
+        return Err(Error::invalid(
+            "recording",
+            format!(
+                "frames of {} x {} for events of a {} x {} sensor",
+                source.size().0,
+                source.size().1,
+                events.width,
+                events.height
+            ),
+        ));
+    }
+    Ok((events, read_frames(source.as_mut(), max_frames)?))
 }
 
 /// Whether `path` is plain text that ffmpeg should not be given: its first 4 KiB are UTF-8 with

@@ -15,7 +15,7 @@
 use serde::Serialize;
 
 use crate::error::Result;
-use crate::event::Event;
+use crate::event::{time_slice, Event};
 use crate::interval::Interval;
 use crate::voxel::{VoxelGrid, Voxelizer};
 
@@ -157,11 +157,6 @@ pub fn score(
     let mut touched: Vec<usize> = Vec::new();
     let mut m = Stage1Metrics::default();
     let (mut f1s, mut accs, mut pm2, mut pm4) = ([0.0; 3], [0.0; 3], 0.0, 0.0);
-    let slice = |events: &'_ [Event], iv: Interval| -> std::ops::Range<usize> {
-        let lo = events.partition_point(|e| e.t < iv.start());
-        let hi = events.partition_point(|e| e.t < iv.end());
-        lo..hi.max(lo)
-    };
     for chunk in intervals.chunks(CHUNK_INTERVALS) {
         let mut conf = [Confusion::default(); 3];
         let nodes_total = bins * chunk.len();
@@ -170,8 +165,8 @@ pub fn score(
             Pool::new(4, nodes_total, w, h),
         ];
         for (l, &iv) in chunk.iter().enumerate() {
-            let r = &real[slice(real, iv)];
-            let s = &sim[slice(sim, iv)];
+            let r = time_slice(real, iv.start(), iv.end());
+            let s = time_slice(sim, iv.start(), iv.end());
             m.real_events += r.len() as u64;
             m.sim_events += s.len() as u64;
             vox.voxelize_into(r, iv, &mut real_grid)?;
@@ -265,7 +260,7 @@ mod tests {
     use crate::interval::fixed_intervals;
 
     fn stream(seed: u64) -> Vec<Event> {
-        crate::synthetic::sweeping_bar(64, 48, 1_000_000, seed)
+        crate::sweeping_bar::recording(64, 48, 1_000_000, seed)
             .events
             .into_events()
     }

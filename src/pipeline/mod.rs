@@ -764,7 +764,7 @@ fn sink_stage(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::frame::synthetic::SceneSource;
+    use crate::frame::scene_fn::SceneSource;
     use crate::sink::SinkStats;
     use std::sync::atomic::AtomicU64;
 
@@ -984,7 +984,7 @@ mod tests {
 #[cfg(test)]
 mod timing_tests {
     use super::*;
-    use crate::frame::synthetic::SceneSource;
+    use crate::frame::scene_fn::SceneSource;
     use crate::sink::SinkStats;
 
     /// Takes everything, keeps nothing.

@@ -11,6 +11,9 @@ use serde::Serialize;
 use super::queue::QueueStats;
 use crate::sink::SinkStats;
 
+/// Read from [`crate::process`], where it lives; named here too for the daemon's stats.
+pub use crate::process::ProcessUsage;
+
 /// Shared counters, updated by the stage threads.
 pub struct Counters {
     started: Instant,
@@ -475,46 +478,6 @@ impl Counters {
     }
 }
 
-/// The process's CPU time and memory.
-#[derive(Debug, Clone, Copy, Default)]
-pub struct ProcessUsage {
-    /// User + system CPU seconds.
-    pub cpu_s: f64,
-    /// Resident set now, KiB (0 where /proc is missing).
-    pub rss_kib: u64,
-    /// Peak resident set, KiB.
-    pub max_rss_kib: u64,
-}
-
-impl ProcessUsage {
-    /// Reads them now.
-    pub fn now() -> Self {
-        // SAFETY: getrusage writes one plain struct that we own.
-        let mut ru: libc::rusage = unsafe { std::mem::zeroed() };
-        let ok = unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut ru) } == 0;
-        let secs = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
-        let (cpu_s, max_rss_kib) = if ok {
-            (
-                secs(ru.ru_utime) + secs(ru.ru_stime),
-                ru.ru_maxrss.max(0) as u64,
-            )
-        } else {
-            (0.0, 0)
-        };
-        // Field 2 of /proc/self/statm: resident pages.
-        let page_kib = (unsafe { libc::sysconf(libc::_SC_PAGESIZE) }.max(4096) / 1024) as u64;
-        let rss_kib = std::fs::read_to_string("/proc/self/statm")
-            .ok()
-            .and_then(|s| s.split_whitespace().nth(1)?.parse::<u64>().ok())
-            .map_or(0, |pages| pages * page_kib);
-        ProcessUsage {
-            cpu_s,
-            rss_kib,
-            max_rss_kib,
-        }
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -534,12 +497,5 @@ mod tests {
         let s = c.snapshot();
         assert_eq!(s.latency.count, 1);
         assert_eq!(s.latency_total.count, 101);
-    }
-
-    #[test]
-    fn process_usage_is_read() {
-        let u = ProcessUsage::now();
-        assert!(u.max_rss_kib > 0);
-        assert!(u.rss_kib > 0);
     }
 }

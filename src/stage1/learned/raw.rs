@@ -144,14 +144,7 @@ pub fn bench(
         network.run(&input, shape)?;
         runs_s.push(started.elapsed().as_secs_f64());
     }
-    let mut sorted = runs_s.clone();
-    sorted.sort_by(f64::total_cmp);
-    let mid = sorted.len() / 2;
-    let median_s = if sorted.len() % 2 == 0 {
-        (sorted[mid - 1] + sorted[mid]) / 2.0
-    } else {
-        sorted[mid]
-    };
+    let median_s = crate::stats::median(&mut runs_s.clone());
     Ok(BenchReport {
         width: w,
         height: h,
@@ -161,6 +154,6 @@ pub fn bench(
         runs_s,
         median_s,
         pairs_per_s: pairs as f64 / median_s,
-        peak_rss_mib: crate::pipeline::stats::ProcessUsage::now().max_rss_kib as f64 / 1024.0,
+        peak_rss_mib: crate::process::ProcessUsage::now().max_rss_kib as f64 / 1024.0,
     })
 }

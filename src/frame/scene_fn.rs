@@ -1,5 +1,5 @@
-//! Synthetic scenes rendered to frames, for tests and benchmarks: any function of time and
-//! pixel, sampled at a fixed rate.
+//! Frames of a scene function, for tests and benchmarks: any function of time and pixel
+//! ([`SceneFn`]), sampled at a fixed rate.
 
 use super::{Frame, FrameSource};
 use crate::error::Result;

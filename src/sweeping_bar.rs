@@ -1,5 +1,5 @@
-//! Synthetic event recordings made by the project, for the embedded default run, tests and
-//! benchmarks when no real recording is at hand.
+//! The sweeping-bar recording: synthetic events made by the project, the built-in input of
+//! `v2ce eval stage2` and a recording for tests and benchmarks when no real one is at hand.
 //!
 //! The scene: a bright bar sweeping back and forth across a dark background on a small sensor.
 //! Each pixel fires a burst of ON events when the bar's leading edge passes it and OFF events at
@@ -12,8 +12,8 @@ use rand_xoshiro::Xoshiro256PlusPlus;
 use crate::event::Event;
 use crate::format::Recording;
 
-/// The sweeping-bar scene: `width x height`, events in `[0, duration_us)`, from `seed`.
-pub fn sweeping_bar(width: u16, height: u16, duration_us: i64, seed: u64) -> Recording {
+/// The sweeping-bar recording: `width x height`, events in `[0, duration_us)`, from `seed`.
+pub fn recording(width: u16, height: u16, duration_us: i64, seed: u64) -> Recording {
     let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
     let (w, h) = (width as f64, height as f64);
     let bar = (w / 8.0).max(1.0);
@@ -72,8 +72,8 @@ mod tests {
 
     #[test]
     fn deterministic_and_inside_the_sensor() {
-        let a = sweeping_bar(64, 48, 500_000, 7);
-        let b = sweeping_bar(64, 48, 500_000, 7);
+        let a = recording(64, 48, 500_000, 7);
+        let b = recording(64, 48, 500_000, 7);
         assert_eq!(a.events, b.events);
         assert!(a.events.len() > 5_000);
         assert!(a

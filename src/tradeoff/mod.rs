@@ -6,7 +6,15 @@
 //! frame intervals to score, e.g. the half a model did not train on) or that the physics tier
 //! gave at 1 kHz (a synthetic sequence of `v2ce dataset`, made again from its seed). A
 //! [`Setting`] is a Stage 1 configuration and a Stage 2 sampler. [`measure`] runs one setting on
-//! one scene in this process, single pass, and scores it as `v2ce eval stage1` does.
+//! one scene in this process, single pass, and scores it as `v2ce eval stage1` does
+//! ([`crate::eval::stage1`]); [`run`] measures every setting on every group of scenes.
+//! [`matrix`] holds what the bench measures (the settings, the scenes), `chart` draws its [`plot`].
+
+mod chart;
+pub mod matrix;
+
+pub use chart::plot;
+pub use matrix::{settings, still_scenes, synthetic_scenes};
 
 use std::time::Instant;
 
@@ -16,8 +24,6 @@ use crate::error::Result;
 use crate::event::{sort_events, Event};
 use crate::frame::{Frame, SourceEncoding};
 use crate::interval::Interval;
-use crate::metrics::stage1::score;
-use crate::metrics::Stage2Scorer;
 use crate::stage1::{Stage1Batch, Stage1Config};
 use crate::stage2::SamplerKind;
 use crate::voxel::DEFAULT_BINS;
@@ -108,25 +114,8 @@ pub fn measure(setting: &Setting, scene: &Scene) -> Result<Row> {
     drain(&mut batches, &mut events);
     let seconds = started.elapsed().as_secs_f64();
     sort_events(&mut events);
-    let m = score(
-        &scene.events,
-        &events,
-        &scene.scored,
-        size.0,
-        size.1,
-        DEFAULT_BINS,
-    )?;
-    let mut timing = Stage2Scorer::new();
-    let slice = |ev: &[Event], iv: &Interval| {
-        let lo = ev.partition_point(|e| e.t < iv.start());
-        let hi = ev.partition_point(|e| e.t < iv.end());
-        (lo, hi)
-    };
-    for iv in &scene.scored {
-        let (a, b) = slice(&scene.events, iv);
-        let (c, d) = slice(&events, iv);
-        timing.add_interval(*iv, &scene.events[a..b], &events[c..d]);
-    }
+    let report = crate::eval::stage1(&scene.events, &events, &scene.scored, size)?;
+    let m = report.voxels;
     let pairs = scene.frames.len().saturating_sub(1) as u64;
     let stats = stage1.stats();
     Ok(Row {
@@ -140,7 +129,7 @@ pub fn measure(setting: &Setting, scene: &Scene) -> Result<Row> {
         tf1: m.tf1,
         tpf1: m.tpf1,
         count_ratio: m.count_ratio(),
-        c_mete_us: timing.finish().c_mete_us,
+        c_mete_us: report.timing.c_mete_us,
         events: m.sim_events,
         real_events: m.real_events,
     })
@@ -186,6 +175,36 @@ pub fn combine(rows: &[Row], scene: &str) -> Option<Row> {
     })
 }
 
+/// A group's name: that of its scenes (they share one).
+pub fn group_name(group: &[Scene]) -> String {
+    group.first().map(|s| s.name.clone()).unwrap_or_default()
+}
+
+/// Measures every setting on every group of scenes, in order, combining each setting's rows on
+/// a group ([`combine`]); each combined row goes to `on_row` as it is made, and all are
+/// returned.
+pub fn run(
+    groups: &[Vec<Scene>],
+    settings: &[Setting],
+    mut on_row: impl FnMut(&Row) -> Result<()>,
+) -> Result<Vec<Row>> {
+    let mut rows = Vec::new();
+    for group in groups {
+        let name = group_name(group);
+        for setting in settings {
+            let each = group
+                .iter()
+                .map(|scene| measure(setting, scene))
+                .collect::<Result<Vec<_>>>()?;
+            if let Some(row) = combine(&each, &name) {
+                on_row(&row)?;
+                rows.push(row);
+            }
+        }
+    }
+    Ok(rows)
+}
+
 /// The rows as a Markdown table.
 pub fn table(rows: &[Row]) -> String {
     let mut out = String::from(
@@ -223,163 +242,6 @@ pub fn pareto<'a>(rows: &'a [Row], scene: &str) -> Vec<&'a Row> {
         })
         .copied()
         .collect()
-}
-
-/// Where the plot's font is looked for (Debian's `fonts-dejavu-core`, and other common places);
-/// `V2CE_FONT` names another TrueType file.
-const FONTS: &[&str] = &[
-    "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
-    "/usr/share/fonts/dejavu/DejaVuSans.ttf",
-    "/usr/share/fonts/TTF/DejaVuSans.ttf",
-    "/usr/share/fonts/truetype/liberation/LiberationSans-Regular.ttf",
-    "/usr/share/fonts/liberation-sans/LiberationSans-Regular.ttf",
-];
-
-/// Registers a TrueType font for the plot's text, once per process.
-fn register_font() -> Result<()> {
-    use std::sync::OnceLock;
-    static DONE: OnceLock<std::result::Result<(), String>> = OnceLock::new();
-    DONE.get_or_init(|| {
-        let env = std::env::var_os("V2CE_FONT").map(std::path::PathBuf::from);
-        let candidates = env
-            .into_iter()
-            .chain(FONTS.iter().map(std::path::PathBuf::from));
-        for path in candidates {
-            if let Ok(bytes) = std::fs::read(&path) {
-                // The plotting crate keeps fonts for the process's life.
-                let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
-                if plotters::style::register_font(
-                    "sans-serif",
-                    plotters::style::FontStyle::Normal,
-                    bytes,
-                )
-                .is_ok()
-                {
-                    return Ok(());
-                }
-            }
-        }
-        Err(format!(
-            "no font for the plot's text: install fonts-dejavu-core (apt) or set V2CE_FONT to a \
-             .ttf file (looked in {})",
-            FONTS.join(", ")
-        ))
-    })
-    .clone()
-    .map_err(|e| crate::Error::invalid("plot", e))
-}
-
-/// Draws TF1 against speed (pairs/s, log scale), one panel per scene, every row a point (by
-/// tier) and the Pareto front ([`pareto`]) a line through its labelled points, as a PNG at
-/// `path`.
-pub fn plot(rows: &[Row], path: &std::path::Path) -> Result<()> {
-    use plotters::prelude::*;
-    register_font()?;
-    let mut scenes: Vec<&str> = Vec::new();
-    for r in rows {
-        if !scenes.contains(&r.scene.as_str()) {
-            scenes.push(&r.scene);
-        }
-    }
-    if scenes.is_empty() {
-        return Err(crate::Error::invalid("plot", "no rows to plot"));
-    }
-    let fail = |e: &dyn std::fmt::Display| crate::Error::invalid("plot", e.to_string());
-    let panel_w = 720u32;
-    let root = BitMapBackend::new(path, (panel_w * scenes.len() as u32, 560)).into_drawing_area();
-    root.fill(&WHITE).map_err(|e| fail(&e))?;
-    let panels = root.split_evenly((1, scenes.len()));
-    for (area, scene) in panels.iter().zip(&scenes) {
-        let of: Vec<&Row> = rows.iter().filter(|r| r.scene == *scene).collect();
-        // Speeds on a log10 axis, whole decades.
-        let x = |r: &Row| r.pairs_per_s.max(1e-3).log10();
-        let lo = of
-            .iter()
-            .map(|r| x(r))
-            .fold(f64::INFINITY, f64::min)
-            .floor();
-        let hi = of
-            .iter()
-            .map(|r| x(r))
-            .fold(f64::NEG_INFINITY, f64::max)
-            .ceil();
-        let hi = if hi > lo { hi } else { lo + 1.0 };
-        let top = of.iter().map(|r| r.tf1).fold(0.0f64, f64::max);
-        let mut chart = ChartBuilder::on(area)
-            .caption(format!("TF1 against speed: {scene}"), ("sans-serif", 18))
-            .margin(16)
-            .x_label_area_size(44)
-            .y_label_area_size(50)
-            .build_cartesian_2d(lo..hi, 0f64..(top * 1.15).clamp(0.05, 1.0))
-            .map_err(|e| fail(&e))?;
-        chart
-            .configure_mesh()
-            .x_labels((hi - lo) as usize + 1)
-            .x_label_formatter(&|v| format!("{}", 10f64.powf(v.round())))
-            .x_desc("frame pairs per second (log scale)")
-            .y_desc("TF1")
-            .light_line_style(WHITE)
-            .label_style(("sans-serif", 13))
-            .draw()
-            .map_err(|e| fail(&e))?;
-        for (name, colour, physics) in [
-            ("physics tier", RGBColor(31, 119, 180), true),
-            ("learned tier", RGBColor(214, 39, 40), false),
-        ] {
-            let points = of
-                .iter()
-                .filter(|r| r.setting.starts_with("physics") == physics)
-                .map(|r| Circle::new((x(r), r.tf1), 4, colour.filled()));
-            chart
-                .draw_series(points)
-                .map_err(|e| fail(&e))?
-                .label(name)
-                .legend(move |(x, y)| Circle::new((x + 8, y), 4, colour.filled()));
-        }
-        let mut front = pareto(rows, scene);
-        front.sort_by(|a, b| a.pairs_per_s.total_cmp(&b.pairs_per_s));
-        chart
-            .draw_series(LineSeries::new(
-                front.iter().map(|r| (x(r), r.tf1)),
-                BLACK.stroke_width(1),
-            ))
-            .map_err(|e| fail(&e))?
-            .label("Pareto front (speed, TF1)")
-            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], BLACK));
-        let mid = (lo + hi) / 2.0;
-        chart
-            .draw_series(front.iter().enumerate().map(|(i, r)| {
-                use plotters::style::text_anchor::{HPos, Pos, VPos};
-                // Left of points in the right half, right of the others; alternately above
-                // and below, so neighbouring labels part.
-                let (h, dx) = if x(r) > mid {
-                    (HPos::Right, -8)
-                } else {
-                    (HPos::Left, 8)
-                };
-                let (v, dy) = if i % 2 == 0 {
-                    (VPos::Bottom, -6)
-                } else {
-                    (VPos::Top, 6)
-                };
-                let style = ("sans-serif", 12)
-                    .into_font()
-                    .color(&BLACK)
-                    .pos(Pos::new(h, v));
-                EmptyElement::at((x(r), r.tf1)) + Text::new(r.setting.clone(), (dx, dy), style)
-            }))
-            .map_err(|e| fail(&e))?;
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::LowerRight)
-            .background_style(WHITE.mix(0.8))
-            .border_style(BLACK)
-            .label_font(("sans-serif", 13))
-            .draw()
-            .map_err(|e| fail(&e))?;
-    }
-    root.present().map_err(|e| fail(&e))?;
-    Ok(())
 }
 
 #[cfg(test)]
