@@ -108,7 +108,7 @@ mod tests {
         assert_eq!(error_line(text, t..text.len(), "`c`: bad"), 4);
         // A key not in the table, or no key: where the span starts.
         assert_eq!(error_line(text, t..text.len(), "unknown field `zz`"), 1);
-        assert_eq!(error_line(text, 10..11, "unknown field `bee`"), 2);
+        assert_eq!(error_line(text, 4..5, "unknown field `bee`"), 2);
         let err = parse::<Two>("first = 1\nsecond = \"x\"\n", Path::new("x.toml"))
             .unwrap_err()
             .to_string();

@@ -5,8 +5,8 @@ use std::path::PathBuf;
 use clap::{Args, Subcommand};
 
 use super::*;
-use crate::config::parse_size;
 use crate::error::{Error, Result};
+use crate::limits::parse_size;
 
 /// The `v2ce dataset` subcommands.
 #[derive(Subcommand)]

@@ -27,6 +27,20 @@ use crate::config::Config;
 use crate::error::{Error, Result};
 use crate::format::{self};
 
+/// Writes each flag that was given over the setting it overrides:
+/// `given!(config.field => args.flag, ...)` (a flag of `Option<T>` onto a `T` or an
+/// `Option<T>`).
+macro_rules! given {
+    ($($setting:expr => $flag:expr),* $(,)?) => {
+        $(
+            if let Some(v) = &$flag {
+                $setting = v.to_owned().into();
+            }
+        )*
+    };
+}
+pub(crate) use given;
+
 /// The commands of `v2ce`.
 #[derive(Subcommand)]
 pub enum Command {
@@ -174,41 +188,23 @@ pub struct TierArgs {
 impl TierArgs {
     /// Writes the flags given onto `config` (`[stage1]`, `[stage1.learned]`) and checks the result.
     pub fn apply(&self, config: &mut Config) -> Result<()> {
-        let learned = &mut config.stage1.learned;
-        if let Some(m) = &self.model {
-            learned.model = m.clone();
-            config.stage1.tier = crate::stage1::Tier::Learned;
+        let stage1 = &mut config.stage1;
+        if self.model.is_some() {
+            stage1.tier = crate::stage1::Tier::Learned;
         }
-        if let Some(t) = self.stage1 {
-            config.stage1.tier = t;
-        }
-        if let Some(v) = self.window {
-            learned.window = v;
-        }
-        if let Some(v) = self.stride {
-            learned.stride = v;
-        }
-        if let Some(v) = self.geometry {
-            learned.geometry = v;
-        }
-        if let Some(v) = self.threads {
-            learned.threads = v;
-        }
-        if let Some(v) = self.device {
-            learned.device = v;
-        }
-        if let Some(v) = self.floor {
-            learned.floor = Some(v);
-        }
-        if let Some(v) = self.roi_margin {
-            learned.roi_margin = Some(v);
-        }
-        if self.no_roi {
-            learned.roi = false;
-        }
-        if let Some(v) = self.budget_fps {
-            config.stage1.budget_fps = v;
-        }
+        given!(
+            stage1.learned.model => self.model,
+            stage1.tier => self.stage1,
+            stage1.learned.window => self.window,
+            stage1.learned.stride => self.stride,
+            stage1.learned.geometry => self.geometry,
+            stage1.learned.threads => self.threads,
+            stage1.learned.device => self.device,
+            stage1.learned.floor => self.floor,
+            stage1.learned.roi_margin => self.roi_margin,
+            stage1.budget_fps => self.budget_fps,
+        );
+        stage1.learned.roi &= !self.no_roi;
         config.stage1.validate()?;
         config.stage1.learned.validate()
     }

@@ -158,74 +158,35 @@ pub fn run_config(args: &RunArgs) -> Result<Config> {
         None => Config::default(),
     };
     let run = &mut config.run;
-    let source = &mut run.parts.source;
-    if let Some(v) = &args.source {
-        source.source = v.clone();
-    }
-    if let Some(v) = &args.size {
-        source.size = v.clone();
-    }
-    if let Some(v) = args.replay_speed {
-        source.replay_speed = v;
-    }
-    if args.loop_source {
-        source.loop_source = true;
-    }
-    let udp = &mut run.parts.udp;
-    if let Some(v) = &args.udp {
-        udp.address = v.clone();
-    }
+    let parts = &mut run.parts;
+    super::given!(
+        parts.source.source => args.source,
+        parts.source.size => args.size,
+        parts.source.replay_speed => args.replay_speed,
+        parts.udp.address => args.udp,
+        parts.udp.payload => args.udp_payload,
+        parts.udp.rate => args.udp_rate,
+        parts.udp.send_buffer => args.udp_send_buffer,
+        parts.udp.emit => args.emit,
+        parts.udp.emit_delay_ms => args.emit_delay_ms,
+        parts.udp.emit_priority => args.emit_priority,
+        parts.tcp.address => args.tcp,
+        parts.tcp.format => args.tcp_format,
+        parts.out.path => args.out,
+        run.duration => args.duration,
+        run.max_frames => args.max_frames,
+        run.stats_interval => args.stats_interval,
+        run.http => args.http,
+        run.ready_timeout => args.ready_timeout,
+    );
     if let Some(v) = &args.udp_format {
-        udp.format = crate::format::datagram::UdpFormat::from_name(v)?;
-    }
-    if let Some(v) = args.udp_payload {
-        udp.payload = v;
-    }
-    if let Some(v) = args.udp_rate {
-        udp.rate = v;
-    }
-    if let Some(v) = args.udp_send_buffer {
-        udp.send_buffer = v;
-    }
-    if let Some(v) = args.emit {
-        udp.emit = v;
-    }
-    if let Some(v) = args.emit_delay_ms {
-        udp.emit_delay_ms = v;
-    }
-    if let Some(v) = args.emit_priority {
-        udp.emit_priority = v;
-    }
-    if let Some(v) = &args.tcp {
-        run.parts.tcp.address = v.clone();
-    }
-    if let Some(v) = args.tcp_format {
-        run.parts.tcp.format = v;
-    }
-    if let Some(v) = &args.out {
-        run.parts.out.path = v.clone();
-    }
-    if args.wait_for_client {
-        run.wait_for_client = true;
+        parts.udp.format = crate::format::datagram::UdpFormat::from_name(v)?;
     }
     if let Some(v) = &args.queue_policy {
         run.queue_policy = crate::pipeline::queue::QueuePolicy::from_name(v)?;
     }
-    if let Some(v) = args.duration {
-        run.duration = v;
-    }
-    if let Some(v) = args.max_frames {
-        run.max_frames = v;
-    }
-    if let Some(v) = args.stats_interval {
-        run.stats_interval = v;
-    }
-    if let Some(v) = &args.http {
-        run.http = v.clone();
-    }
-    if let Some(v) = args.ready_timeout {
-        run.ready_timeout = v;
-    }
+    parts.source.loop_source |= args.loop_source;
+    run.wait_for_client |= args.wait_for_client;
     if let Some(s) = args.seed {
         config.stage1.seed = s;
         config.stage2.seed = s;

@@ -4,8 +4,8 @@ use std::path::PathBuf;
 
 use clap::Args;
 
-use crate::config::parse_size;
 use crate::error::{Error, Result};
+use crate::limits::parse_size;
 
 /// The flags of `v2ce bench tradeoff`.
 #[derive(Args)]

@@ -11,10 +11,6 @@ mod run;
 
 pub use run::{Parts, RunConfig, DEFAULT_UDP};
 
-// Until the command modules that still name it here move to `limits::parse_size`.
-#[doc(hidden)]
-pub use crate::limits::parse_size;
-
 use crate::error::{Error, Result};
 pub use crate::sink::udp::EmitMode;
 use crate::sink::SinkConfig;

@@ -14,23 +14,16 @@
 
 use std::path::{Path, PathBuf};
 
+use clap::ValueEnum;
+use serde::{Deserialize, Serialize};
+
 use super::color::{gray_to_luma, rgb_to_luma};
 use super::{check_order, Frame, FrameSource};
 use crate::error::{Error, Result};
 use crate::format::ijrr::parse_seconds_us;
 
 /// How image values relate to the light.
-#[derive(
-    Debug,
-    Clone,
-    Copy,
-    PartialEq,
-    Eq,
-    Default,
-    serde::Deserialize,
-    serde::Serialize,
-    clap::ValueEnum,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, Serialize, ValueEnum)]
 #[serde(rename_all = "kebab-case")]
 pub enum ColorSpace {
     /// Linear for a recognised APS export, else sRGB (warning for gray images).

@@ -19,6 +19,9 @@
 use std::net::{SocketAddr, ToSocketAddrs, UdpSocket};
 use std::time::{Duration, Instant};
 
+use clap::ValueEnum;
+use serde::{Deserialize, Serialize};
+
 use super::emit::EmitClock;
 use super::{ClosedBy, Sink, SinkContext, SinkStats};
 use crate::error::{Error, Result};
@@ -26,17 +29,7 @@ use crate::event::Event;
 pub use crate::format::datagram::UdpFormat;
 
 /// When a UDP sink sends events, as configured.
-#[derive(
-    Debug,
-    Clone,
-    Copy,
-    PartialEq,
-    Eq,
-    Default,
-    serde::Deserialize,
-    serde::Serialize,
-    clap::ValueEnum,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, Serialize, ValueEnum)]
 #[serde(rename_all = "kebab-case")]
 pub enum EmitMode {
     /// Each event at its own time plus a constant delay (`emit_delay_ms`).

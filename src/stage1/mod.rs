@@ -75,6 +75,25 @@ pub struct Counter {
     pub value: u64,
 }
 
+impl Counter {
+    /// The counters of one family, a value per `result`.
+    pub fn family(
+        family: &'static str,
+        help: &'static str,
+        values: &[(&'static str, u64)],
+    ) -> Vec<Counter> {
+        values
+            .iter()
+            .map(|&(result, value)| Counter {
+                family,
+                help,
+                result,
+                value,
+            })
+            .collect()
+    }
+}
+
 /// A tier's own counters: what it reports in its section of a report, and the [`Counter`]s
 /// it exports. The zero record stands for a tier that did not run.
 pub trait TierRecord: Serialize + Default {

@@ -380,16 +380,14 @@ impl super::TierRecord for PhysicsStats {
     const TIER: &'static str = "physics";
 
     fn counters(&self) -> Vec<super::Counter> {
-        let tiles = |result, value| super::Counter {
-            family: "tiles",
-            help: "Tiles the pixel model updated or skipped as static.",
-            result,
-            value,
-        };
-        vec![
-            tiles("active", self.tiles_active),
-            tiles("skipped", self.tiles_skipped),
-        ]
+        super::Counter::family(
+            "tiles",
+            "Tiles the pixel model updated or skipped as static.",
+            &[
+                ("active", self.tiles_active),
+                ("skipped", self.tiles_skipped),
+            ],
+        )
     }
 }
 

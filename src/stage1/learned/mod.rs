@@ -244,16 +244,11 @@ impl super::TierRecord for LearnedStats {
     const TIER: &'static str = "learned";
 
     fn counters(&self) -> Vec<super::Counter> {
-        let windows = |result, value| super::Counter {
-            family: "windows",
-            help: "Windows the learned tier ran, by result (run, skipped as still).",
-            result,
-            value,
-        };
-        vec![
-            windows("run", self.windows),
-            windows("skipped", self.windows_skipped),
-        ]
+        super::Counter::family(
+            "windows",
+            "Windows the learned tier ran, by result (run, skipped as still).",
+            &[("run", self.windows), ("skipped", self.windows_skipped)],
+        )
     }
 }
 
