@@ -6,38 +6,38 @@
 
 #![warn(missing_docs)]
 
-pub mod batch;
+pub(crate) mod batch;
 pub mod calibrate;
 pub mod capture;
 pub mod cli;
 pub mod config;
 pub mod convert;
-pub mod daemon;
-pub mod dataset;
+pub(crate) mod daemon;
+pub(crate) mod dataset;
 pub mod error;
 pub mod eval;
 pub mod event;
 pub mod format;
 pub mod frame;
-pub mod http;
+pub(crate) mod http;
 pub mod interval;
-pub mod limits;
-pub mod listen;
+pub(crate) mod limits;
+pub(crate) mod listen;
 pub mod metrics;
 pub mod model;
-pub mod pipeline;
-pub mod process;
-pub mod realtime;
+pub(crate) mod pipeline;
+pub(crate) mod process;
+pub(crate) mod realtime;
 pub mod render;
 pub mod sink;
-pub mod source;
+pub(crate) mod source;
 pub mod stage1;
 pub mod stage2;
-pub mod stats;
+pub(crate) mod stats;
 pub mod sweeping_bar;
-pub mod toml_doc;
-pub mod tradeoff;
-pub mod transcode;
+pub(crate) mod toml_doc;
+pub(crate) mod tradeoff;
+pub(crate) mod transcode;
 pub mod voxel;
 
 pub use error::{Error, Result};

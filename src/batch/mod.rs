@@ -12,8 +12,8 @@
 //! - [`run`]: converts the shard's items ([`crate::convert::convert_file`], as `v2ce convert`
 //!   does), skipping what its ledger records as done with the same input and settings
 //!   (`run.rs`, one item in `item.rs`, the hashes of inputs and settings in `hash.rs`, the
-//!   ledger in `ledger.rs`); what it did in a [`ShardSummary`].
-//! - [`report`]: every shard's ledger merged into one [`Report`] (`report.rs`).
+//!   ledger in `ledger.rs`); what it did in a [`run::ShardSummary`].
+//! - [`report`]: every shard's ledger merged into one [`report::Report`] (`report.rs`).
 
 mod hash;
 mod item;
@@ -26,5 +26,5 @@ mod shard;
 
 pub use manifest::Manifest;
 pub use options::{Flags, Options};
-pub use report::{report, Report};
-pub use run::{run, ShardSummary};
+pub use report::report;
+pub use run::run;

@@ -15,39 +15,39 @@ pub struct BatchArgs {
     /// The inputs: a list (`PATH [key=value ...]` per line, keys fps, size, preset, tier, seed,
     /// output; relative paths from the list's folder), JSON lines (`{"input": PATH, ...}`), or
     /// a glob in quotes ('clips/*.mp4')
-    pub manifest: Option<String>,
+    pub(crate) manifest: Option<String>,
     /// The output folder (outputs keep the inputs' relative paths; ledgers go in .v2ce-batch/)
     #[arg(long, short)]
-    pub out: Option<PathBuf>,
+    pub(crate) out: Option<PathBuf>,
     /// This task's share, I/N from 0 (default: SLURM_ARRAY_TASK_ID and SLURM_ARRAY_TASK_COUNT,
     /// or JOB_COMPLETION_INDEX with --shards; else the whole manifest)
     #[arg(long)]
-    pub shard: Option<String>,
+    pub(crate) shard: Option<String>,
     /// The shard count of a Kubernetes Indexed Job (its completions; or V2CE_SHARDS)
     #[arg(long)]
-    pub shards: Option<u32>,
+    pub(crate) shards: Option<u32>,
     /// Threads of this task (default: SLURM_CPUS_PER_TASK, else the machine's)
     #[arg(long)]
-    pub threads: Option<usize>,
+    pub(crate) threads: Option<usize>,
     /// Inputs converted at once (default: the threads; each physics conversion uses about one)
     #[arg(long)]
-    pub jobs: Option<usize>,
+    pub(crate) jobs: Option<usize>,
     /// The output format, by extension: aedat4, raw, csv, npz or h5
     #[arg(long, default_value = "aedat4")]
-    pub format: String,
+    pub(crate) format: String,
     /// How the output is encoded (`--evt`, `--compression`).
     #[command(flatten)]
-    pub encoding: EncodingArgs,
+    pub(crate) encoding: EncodingArgs,
     /// A config file for every input (per-item settings override it)
     #[arg(long)]
-    pub config: Option<PathBuf>,
+    pub(crate) config: Option<PathBuf>,
     /// Merge the ledgers of every shard in DIR into one summary instead of converting (with a
     /// manifest, inputs not yet converted are listed as pending); exit status 1 if any failed
     #[arg(long, value_name = "DIR")]
-    pub report: Option<PathBuf>,
+    pub(crate) report: Option<PathBuf>,
     /// Print the summary as one JSON object on stdout
     #[arg(long)]
-    pub json: bool,
+    pub(crate) json: bool,
 }
 
 /// Runs `v2ce batch`: converts this task's shard, or merges the ledgers (`--report`).

@@ -15,62 +15,62 @@ use crate::stage2::SamplerKind;
 pub struct ConvertArgs {
     /// Frames: a video file (through ffmpeg), a folder of PNG/JPEG images, a .y4m, or an
     /// .aedat4 with APS frames.
-    pub input: PathBuf,
+    pub(crate) input: PathBuf,
     /// Output events; the extension picks the format: .aedat4, .raw, .csv, .npz, .h5/.hdf5.
     #[arg(short, long)]
-    pub output: PathBuf,
+    pub(crate) output: PathBuf,
     /// TOML configuration file (flags override it).
     #[arg(long)]
-    pub config: Option<PathBuf>,
+    pub(crate) config: Option<PathBuf>,
     /// The Stage 1 tier and its settings.
     #[command(flatten)]
-    pub tier: TierArgs,
+    pub(crate) tier: TierArgs,
     /// Also write the voxels Stage 1 hands to Stage 2, as float32 (intervals, 2*C, H, W)
     /// (channel = polarity*C + node, ON first); needs a tier that makes voxels.
     #[arg(long, value_name = "V.npy")]
-    pub write_voxels: Option<PathBuf>,
+    pub(crate) write_voxels: Option<PathBuf>,
     /// Sensor preset: davis346, dvxplorer, ideal [config default: davis346].
     #[arg(long)]
-    pub preset: Option<String>,
+    pub(crate) preset: Option<String>,
     /// A preset file (as `v2ce calibrate` writes) instead of --preset [config default: "",
     /// none].
     #[arg(long, conflicts_with = "preset")]
-    pub preset_file: Option<PathBuf>,
+    pub(crate) preset_file: Option<PathBuf>,
     /// Stage 1 output: events (direct) or voxels (re-timed by the Stage 2 sampler) [config
     /// default: events].
     #[arg(long, value_parser = ["events", "voxels"])]
-    pub mode: Option<String>,
+    pub(crate) mode: Option<String>,
     /// Stage 2 sampler for --mode voxels: moment, ldati, ldati-random, even, random [config
     /// default: moment].
     #[arg(long)]
-    pub sampler: Option<SamplerKind>,
+    pub(crate) sampler: Option<SamplerKind>,
     /// Seed of mismatch, noise and sampling [config default: 0].
     #[arg(long)]
-    pub seed: Option<u64>,
+    pub(crate) seed: Option<u64>,
     /// Frame rate of an image folder without images.txt/times.txt (none: the folder must have
     /// one).
     #[arg(long)]
-    pub fps: Option<f64>,
+    pub(crate) fps: Option<f64>,
     /// How image values relate to the light: auto (linear for a recognised DAVIS APS export,
     /// else sRGB, warning for gray images), srgb (camera video, photos) or linear (raw sensor
     /// exports).
     #[arg(long, value_enum, default_value_t = crate::frame::images::ColorSpace::Auto)]
-    pub color: crate::frame::images::ColorSpace,
+    pub(crate) color: crate::frame::images::ColorSpace,
     /// The same as --color linear.
     #[arg(long, conflicts_with = "color")]
-    pub linear: bool,
+    pub(crate) linear: bool,
     /// How the output is encoded (`--evt`, `--compression`).
     #[command(flatten)]
-    pub encoding: EncodingArgs,
+    pub(crate) encoding: EncodingArgs,
     /// Resample frames to WIDTHxHEIGHT (none: the source's size).
     #[arg(long, value_name = "WxH")]
-    pub size: Option<String>,
+    pub(crate) size: Option<String>,
     /// Stop after this many frames (0 or none: all, as for `run`).
     #[arg(long)]
-    pub max_frames: Option<u64>,
+    pub(crate) max_frames: Option<u64>,
     /// Overwrite an existing output file.
     #[arg(long)]
-    pub force: bool,
+    pub(crate) force: bool,
 }
 
 /// Runs `v2ce convert`: frames in, an event file out, with a start line and progress.

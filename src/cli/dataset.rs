@@ -23,43 +23,43 @@ pub enum DatasetCommand {
 pub struct SyntheticArgs {
     /// The dataset folder (sequences seq_NNNNN.npz and dataset.json).
     #[arg(short, long)]
-    pub out: PathBuf,
+    pub(crate) out: PathBuf,
     /// Sequences to write.
     #[arg(long, default_value_t = 100)]
-    pub count: usize,
+    pub(crate) count: usize,
     /// Seed: the same seed and settings give the same dataset.
     #[arg(long, default_value_t = 0)]
-    pub seed: u64,
+    pub(crate) seed: u64,
     /// Frame size.
     #[arg(long, value_name = "WxH", default_value = "160x120")]
-    pub size: String,
+    pub(crate) size: String,
     /// Frame intervals per sequence.
     #[arg(long, default_value_t = 16)]
-    pub pairs: usize,
+    pub(crate) pairs: usize,
     /// Frame rate of the inputs: one value or a range LO..HI drawn per sequence.
     #[arg(long, default_value = "25..60")]
-    pub fps: String,
+    pub(crate) fps: String,
     /// The ground truth is simulated at least this often, Hz.
     #[arg(long, default_value_t = 1000.0)]
-    pub rate: f64,
+    pub(crate) rate: f64,
     /// Sensor noise in the ground truth: on, off, mixed (half of the sequences).
     #[arg(long, value_enum, default_value_t = crate::dataset::NoiseMode::Mixed)]
-    pub noise: crate::dataset::NoiseMode,
+    pub(crate) noise: crate::dataset::NoiseMode,
     /// The ground-truth sensor preset: davis346, dvxplorer, ideal.
     #[arg(long, default_value = "davis346")]
-    pub preset: String,
+    pub(crate) preset: String,
     /// A preset file (as `v2ce calibrate` writes) instead of --preset.
     #[arg(long, conflicts_with = "preset")]
-    pub preset_file: Option<PathBuf>,
+    pub(crate) preset_file: Option<PathBuf>,
     /// A folder of natural images (PNG, JPEG) used as textures beside procedural ones.
     #[arg(long)]
-    pub images: Option<PathBuf>,
+    pub(crate) images: Option<PathBuf>,
     /// Largest read noise of the input frames, 8-bit steps.
     #[arg(long, default_value_t = 1.5)]
-    pub input_noise: f64,
+    pub(crate) input_noise: f64,
     /// Threads (0: one per core).
     #[arg(long, default_value_t = 0)]
-    pub threads: usize,
+    pub(crate) threads: usize,
 }
 
 /// The flags of `v2ce dataset recording`.
@@ -68,26 +68,26 @@ pub struct DatasetRecordingArgs {
     /// The recording: an .aedat4 with events and APS frames, or an event file whose frames
     /// come from --frames.
     #[arg(long)]
-    pub real: PathBuf,
+    pub(crate) real: PathBuf,
     /// The frames, when the recording has none in it (a video, an image folder, an IJRR
     /// images.txt), on the events' time base.
     #[arg(long)]
-    pub frames: Option<PathBuf>,
+    pub(crate) frames: Option<PathBuf>,
     /// The dataset folder.
     #[arg(short, long)]
-    pub out: PathBuf,
+    pub(crate) out: PathBuf,
     /// Which frame intervals: first (half, by time), second, all.
     #[arg(long, value_enum, default_value_t = crate::dataset::Split::All)]
-    pub split: crate::dataset::Split,
+    pub(crate) split: crate::dataset::Split,
     /// Frame intervals per sequence.
     #[arg(long, default_value_t = 16)]
-    pub pairs: usize,
+    pub(crate) pairs: usize,
     /// How --frames' image values relate to the light (as convert's --color).
     #[arg(long, value_enum, default_value_t = crate::frame::images::ColorSpace::Auto)]
-    pub color: crate::frame::images::ColorSpace,
+    pub(crate) color: crate::frame::images::ColorSpace,
     /// Use at most this many frames (they are held in memory).
     #[arg(long, default_value_t = 3000)]
-    pub max_frames: usize,
+    pub(crate) max_frames: usize,
 }
 
 /// The flags of `v2ce calibrate`.
@@ -96,33 +96,33 @@ pub struct CalibrateArgs {
     /// The real recording: an .aedat4 with events and APS frames, or an event file whose frames
     /// come from --frames (.aedat4, .raw, .csv, .h5, .npz, IJRR events.txt).
     #[arg(long)]
-    pub real: PathBuf,
+    pub(crate) real: PathBuf,
     /// The frames, when the recording has none in it: a video, an image folder or a frame list
     /// (IJRR images.txt), on the events' time base.
     #[arg(long)]
-    pub frames: Option<PathBuf>,
+    pub(crate) frames: Option<PathBuf>,
     /// Write the fitted preset file here (TOML: every [stage1.physics] parameter).
     #[arg(short, long)]
-    pub output: PathBuf,
+    pub(crate) output: PathBuf,
     /// The preset the fit starts from and keeps what it does not fit of: davis346, dvxplorer,
     /// ideal.
     #[arg(long, default_value = "davis346")]
-    pub preset: String,
+    pub(crate) preset: String,
     /// Seed of mismatch and noise in the fits.
     #[arg(long, default_value_t = 0)]
-    pub seed: u64,
+    pub(crate) seed: u64,
     /// How --frames' image values relate to the light (as convert's --color).
     #[arg(long, value_enum, default_value_t = crate::frame::images::ColorSpace::Auto)]
-    pub color: crate::frame::images::ColorSpace,
+    pub(crate) color: crate::frame::images::ColorSpace,
     /// Use at most this many frames (they are held in memory).
     #[arg(long, default_value_t = 3000)]
-    pub max_frames: usize,
+    pub(crate) max_frames: usize,
     /// Print the report as one JSON object on stdout.
     #[arg(long)]
-    pub json: bool,
+    pub(crate) json: bool,
     /// Overwrite an existing output file.
     #[arg(long)]
-    pub force: bool,
+    pub(crate) force: bool,
 }
 
 /// Runs `v2ce dataset synthetic`.

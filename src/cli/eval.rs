@@ -29,33 +29,33 @@ pub enum Eval {
 pub struct Stage1Args {
     /// The real events (and, for an .aedat4 with APS frames, the frame intervals).
     #[arg(long)]
-    pub real: PathBuf,
+    pub(crate) real: PathBuf,
     /// The simulated events; without it, the physics tier simulates them here from the
     /// recording's APS frames (or the --frames images) with --preset / --preset-file.
     #[arg(long)]
-    pub sim: Option<PathBuf>,
+    pub(crate) sim: Option<PathBuf>,
     /// Frame times (an .aedat4 with APS frames or an IJRR images.txt) when --real has none.
     #[arg(long, conflicts_with = "fps")]
-    pub frames: Option<PathBuf>,
+    pub(crate) frames: Option<PathBuf>,
     /// Fixed frame rate for the intervals instead.
     #[arg(long)]
-    pub fps: Option<f64>,
+    pub(crate) fps: Option<f64>,
     /// Without --sim: the sensor preset to simulate with (davis346, dvxplorer, ideal).
     #[arg(long, default_value = "davis346", conflicts_with = "sim")]
-    pub preset: String,
+    pub(crate) preset: String,
     /// Without --sim: a preset file (as `v2ce calibrate` writes) instead of --preset.
     #[arg(long, conflicts_with = "sim")]
-    pub preset_file: Option<PathBuf>,
+    pub(crate) preset_file: Option<PathBuf>,
     /// Without --sim: the seed of mismatch and noise.
     #[arg(long, default_value_t = 0, conflicts_with = "sim")]
-    pub seed: u64,
+    pub(crate) seed: u64,
     /// Score only these frame intervals: first (half, by time), second, all (as `v2ce dataset
     /// recording --split`, so a model is scored on the half it did not train on).
     #[arg(long, value_enum, default_value_t = crate::dataset::Split::All)]
-    pub split: crate::dataset::Split,
+    pub(crate) split: crate::dataset::Split,
     /// Print the scores as one JSON object.
     #[arg(long)]
-    pub json: bool,
+    pub(crate) json: bool,
 }
 
 /// The flags of `v2ce eval stage2`.
@@ -63,31 +63,31 @@ pub struct Stage1Args {
 pub struct Stage2Args {
     /// Real events: .aedat4, IJRR events.txt, or .csv (t_us,x,y,on).
     #[arg(long)]
-    pub events: Option<PathBuf>,
+    pub(crate) events: Option<PathBuf>,
     /// Frame times: an .aedat4 with APS frames or an IJRR images.txt.
     #[arg(long, conflicts_with = "fps")]
-    pub frames: Option<PathBuf>,
+    pub(crate) frames: Option<PathBuf>,
     /// Fixed frame rate for the intervals, starting at the first event.
     #[arg(long)]
-    pub fps: Option<f64>,
+    pub(crate) fps: Option<f64>,
     /// Sampler: moment (default), ldati, ldati-random, even, random.
     #[arg(long)]
-    pub sampler: Option<SamplerKind>,
+    pub(crate) sampler: Option<SamplerKind>,
     /// Seed of the sampler's random draws.
     #[arg(long)]
-    pub seed: Option<u64>,
+    pub(crate) seed: Option<u64>,
     /// Temporal nodes per interval (C).
     #[arg(long)]
-    pub bins: Option<usize>,
+    pub(crate) bins: Option<usize>,
     /// TOML configuration file (flags override it).
     #[arg(long)]
-    pub config: Option<PathBuf>,
+    pub(crate) config: Option<PathBuf>,
     /// Write the sampled events as CSV (t_us,x,y,on).
     #[arg(long, value_name = "OUT.csv")]
-    pub write_events: Option<PathBuf>,
+    pub(crate) write_events: Option<PathBuf>,
     /// Print the scores as one JSON object.
     #[arg(long)]
-    pub json: bool,
+    pub(crate) json: bool,
 }
 
 /// Runs `v2ce eval stage1`.

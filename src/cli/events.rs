@@ -14,53 +14,53 @@ use crate::limits::parse_size;
 pub struct TranscodeArgs {
     /// Input: .aedat4, .raw (EVT 2.0 or 3.0, from its header), .csv, .npz, .h5/.hdf5 (DSEC
     /// layout), or IJRR events.txt.
-    pub input: PathBuf,
+    pub(crate) input: PathBuf,
     /// Output; its extension picks the format: .aedat4, .raw, .csv, .npz, .h5/.hdf5.
-    pub output: PathBuf,
+    pub(crate) output: PathBuf,
     /// How the output is encoded (`--evt`, `--compression`).
     #[command(flatten)]
-    pub encoding: EncodingArgs,
+    pub(crate) encoding: EncodingArgs,
     /// Sensor size WIDTHxHEIGHT to write (default: the input's, or the events' extent).
     #[arg(long, value_name = "WxH")]
-    pub size: Option<String>,
+    pub(crate) size: Option<String>,
     /// Overwrite an existing output file.
     #[arg(long)]
-    pub force: bool,
+    pub(crate) force: bool,
 }
 
 /// The flags of `v2ce info`.
 #[derive(Args)]
 pub struct InfoArgs {
     /// An event file: .aedat4, .raw, .csv, .npz, .h5/.hdf5 or IJRR events.txt.
-    pub file: PathBuf,
+    pub(crate) file: PathBuf,
     /// Print one JSON object.
     #[arg(long)]
-    pub json: bool,
+    pub(crate) json: bool,
 }
 
 /// The flags of `v2ce render`.
 #[derive(Args)]
 pub struct RenderArgs {
     /// Events: .aedat4, .raw, .csv, .npz, .h5/.hdf5, IJRR .txt.
-    pub input: PathBuf,
+    pub(crate) input: PathBuf,
     /// The picture: .png (every event in one frame), .gif or .mp4 (frames at --fps).
     #[arg(short, long)]
-    pub output: PathBuf,
+    pub(crate) output: PathBuf,
     /// Frames per second of event time.
     #[arg(long, default_value_t = 30.0)]
-    pub fps: f64,
+    pub(crate) fps: f64,
     /// Fade events with this time constant (ms) instead of showing each frame's window.
     #[arg(long)]
-    pub decay_ms: Option<f64>,
+    pub(crate) decay_ms: Option<f64>,
     /// Play back this many times slower than real time.
     #[arg(long, default_value_t = 1.0)]
-    pub slowdown: f64,
+    pub(crate) slowdown: f64,
     /// Sensor size when the file has none (CSV).
     #[arg(long, value_name = "WxH")]
-    pub size: Option<String>,
+    pub(crate) size: Option<String>,
     /// Overwrite an existing output file.
     #[arg(long)]
-    pub force: bool,
+    pub(crate) force: bool,
 }
 
 /// Runs `v2ce transcode`.

@@ -14,45 +14,45 @@ use crate::limits::parse_size;
 pub struct ListenArgs {
     /// Bind this HOST:PORT for UDP datagrams (port 0: any; the address is printed).
     #[arg(long, conflicts_with = "tcp")]
-    pub udp: Option<String>,
+    pub(crate) udp: Option<String>,
     /// The datagram format: spif, spif_timestamped, t64_x16_y16_on8, t32_x16_y15_on1.
     #[arg(long, default_value = "spif")]
-    pub format: String,
+    pub(crate) format: String,
     /// Connect to a daemon's TCP stream at HOST:PORT (AEDAT 4.0 or RAW EVT 2.0/3.0).
     #[arg(long)]
-    pub tcp: Option<String>,
+    pub(crate) tcp: Option<String>,
     /// Write the events to this file (.aedat4, .raw, .csv, .npz, .h5); plain spif events get their
     /// arrival time.
     #[arg(short, long)]
-    pub out: Option<PathBuf>,
+    pub(crate) out: Option<PathBuf>,
     /// Sensor size for the file (UDP formats carry none).
     #[arg(long, value_name = "WxH", default_value = "640x480")]
-    pub size: String,
+    pub(crate) size: String,
     /// Stop after this many seconds.
     #[arg(long)]
-    pub duration: Option<f64>,
+    pub(crate) duration: Option<f64>,
     /// Stop when nothing arrived for this many seconds after the first arrival.
     #[arg(long, default_value_t = 2.0)]
-    pub idle: f64,
+    pub(crate) idle: f64,
     /// Stop after this many events.
     #[arg(long)]
-    pub max_events: Option<u64>,
+    pub(crate) max_events: Option<u64>,
     /// Kernel receive buffer for UDP, bytes (0: the system's default, about 200 KB, which holds
     /// some 50 ms of a 300,000 events/s stream; the kernel caps the request at
     /// net.core.rmem_max).
     #[arg(long, default_value_t = 4 << 20)]
-    pub recv_buffer: usize,
+    pub(crate) recv_buffer: usize,
     /// Realtime priority of the receiving thread, 1-99, when the process may (root or
     /// CAP_SYS_NICE; 0: normal scheduling): on busy cores a receiver at normal priority can
     /// wait milliseconds, and a default receive buffer holds about one at a million events/s.
     #[arg(long, default_value_t = 5)]
-    pub priority: u8,
+    pub(crate) priority: u8,
     /// Print the report as one JSON object on stdout.
     #[arg(long)]
-    pub json: bool,
+    pub(crate) json: bool,
     /// Overwrite an existing output file.
     #[arg(long)]
-    pub force: bool,
+    pub(crate) force: bool,
 }
 
 /// Runs `v2ce listen`.

@@ -1,15 +1,15 @@
 //! The command line: each command's flags (clap) and body, one module per command family, so
 //! that `main.rs` only parses and dispatches.
 
-pub mod batch;
-pub mod convert;
-pub mod dataset;
-pub mod eval;
-pub mod events;
-pub mod listen;
-pub mod model;
-pub mod run;
-pub mod tradeoff;
+pub(crate) mod batch;
+pub(crate) mod convert;
+pub(crate) mod dataset;
+pub(crate) mod eval;
+pub(crate) mod events;
+pub(crate) mod listen;
+pub(crate) mod model;
+pub(crate) mod run;
+pub(crate) mod tradeoff;
 
 use std::path::{Path, PathBuf};
 
@@ -117,13 +117,13 @@ impl Command {
 pub struct RuntimeArgs {
     /// ONNX Runtime threads (0: one per core).
     #[arg(long, default_value_t = 0)]
-    pub threads: usize,
+    pub(crate) threads: usize,
     /// Execution provider: cpu, cuda, auto (CUDA when the library has it and it starts).
     #[arg(long, value_enum, default_value_t = crate::stage1::learned::Device::Auto)]
-    pub device: crate::stage1::learned::Device,
+    pub(crate) device: crate::stage1::learned::Device,
     /// Keep ONNX Runtime's CPU memory arena (off by default: half the peak memory).
     #[arg(long)]
-    pub cpu_arena: bool,
+    pub(crate) cpu_arena: bool,
 }
 
 impl RuntimeArgs {
@@ -146,43 +146,43 @@ pub struct TierArgs {
     /// unless --model), auto (learned when this machine runs it at --budget-fps, else
     /// physics) [config default: physics].
     #[arg(long, value_enum)]
-    pub stage1: Option<crate::stage1::Tier>,
+    pub(crate) stage1: Option<crate::stage1::Tier>,
     /// The frame rate `--stage1 auto` must hold (0: none) [config default: 30].
     #[arg(long, value_name = "FPS")]
-    pub budget_fps: Option<f64>,
+    pub(crate) budget_fps: Option<f64>,
     /// ONNX model of the learned tier (implies --stage1 learned) [config default: none].
     #[arg(long, value_name = "M.onnx")]
-    pub model: Option<PathBuf>,
+    pub(crate) model: Option<PathBuf>,
     /// Frame intervals per window of the learned tier (the network was trained on 16) [config
     /// default: 16].
     #[arg(long)]
-    pub window: Option<usize>,
+    pub(crate) window: Option<usize>,
     /// New intervals per window (1..=window; less overlaps windows for a shorter wait) [config
     /// default: 0, the window].
     #[arg(long)]
-    pub stride: Option<usize>,
+    pub(crate) stride: Option<usize>,
     /// How frames are fitted to the network: native, resize, center, pano [config default:
     /// native].
     #[arg(long, value_enum)]
-    pub geometry: Option<crate::stage1::Geometry>,
+    pub(crate) geometry: Option<crate::stage1::Geometry>,
     /// ONNX Runtime threads (0: one per core) [config default: 0].
     #[arg(long)]
-    pub threads: Option<usize>,
+    pub(crate) threads: Option<usize>,
     /// Execution provider: cpu, cuda, auto [config default: auto].
     #[arg(long, value_enum)]
-    pub device: Option<crate::stage1::learned::Device>,
+    pub(crate) device: Option<crate::stage1::learned::Device>,
     /// Learned tier: output values below this are zero before Stage 2 [config default: unset,
     /// the built-in model's own floor, 0 for other models].
     #[arg(long)]
-    pub floor: Option<f32>,
+    pub(crate) floor: Option<f32>,
     /// Learned tier: pixels the network's crops reach beyond the regions that changed (less
     /// than the model's receptive field is faster, no longer exact) [config default: unset, the
     /// model's receptive field].
     #[arg(long, value_name = "PX")]
-    pub roi_margin: Option<usize>,
+    pub(crate) roi_margin: Option<usize>,
     /// Learned tier: run the network on whole frames, not only around what changed.
     #[arg(long)]
-    pub no_roi: bool,
+    pub(crate) no_roi: bool,
 }
 
 impl TierArgs {
@@ -215,10 +215,10 @@ impl TierArgs {
 pub struct EncodingArgs {
     /// EVT version of a .raw output (2 by default: some readers mis-time EVT 3.0).
     #[arg(long, value_parser = ["2", "3"], default_value = "2")]
-    pub evt: String,
+    pub(crate) evt: String,
     /// Packet compression of an .aedat4 output: lz4, zstd, zstd-high or none.
     #[arg(long, default_value = "lz4")]
-    pub compression: String,
+    pub(crate) compression: String,
 }
 
 impl EncodingArgs {

@@ -25,58 +25,58 @@ pub enum ModelCommand {
 #[derive(Args)]
 pub struct ModelBenchArgs {
     /// The ONNX model.
-    pub model: PathBuf,
+    pub(crate) model: PathBuf,
     /// Frame size.
     #[arg(long, value_name = "WxH", default_value = "346x260")]
-    pub size: String,
+    pub(crate) size: String,
     /// Pairs per window.
     #[arg(long, default_value_t = 16)]
-    pub pairs: usize,
+    pub(crate) pairs: usize,
     /// Timed runs after one warm-up (the median is reported).
     #[arg(long, default_value_t = 3)]
-    pub runs: usize,
+    pub(crate) runs: usize,
     /// How ONNX Runtime runs the network.
     #[command(flatten)]
-    pub runtime: RuntimeArgs,
+    pub(crate) runtime: RuntimeArgs,
 }
 
 /// The flags of `v2ce model import`.
 #[derive(Args)]
 pub struct ModelImportArgs {
     /// The checkpoint (a torch.save zip archive of the state dict).
-    pub checkpoint: PathBuf,
+    pub(crate) checkpoint: PathBuf,
     /// The ONNX model to write (written under a temporary name, renamed when complete).
     #[arg(short, long, value_name = "M.onnx")]
-    pub output: PathBuf,
+    pub(crate) output: PathBuf,
     /// How spectral-norm weights are resolved: power-iteration (what the reference does at its
     /// first call after loading; the only one that reproduces it), stored, exact.
     #[arg(long, value_enum, default_value_t = crate::model::SpectralNorm::PowerIteration)]
-    pub spectral_norm: crate::model::SpectralNorm,
+    pub(crate) spectral_norm: crate::model::SpectralNorm,
     /// Keep BatchNorm as nodes instead of folding it into the convolutions.
     #[arg(long)]
-    pub keep_bn: bool,
+    pub(crate) keep_bn: bool,
     /// Overwrite an existing output file.
     #[arg(long)]
-    pub force: bool,
+    pub(crate) force: bool,
 }
 
 /// The flags of `v2ce model run`.
 #[derive(Args)]
 pub struct ModelRunArgs {
     /// The ONNX model.
-    pub model: PathBuf,
+    pub(crate) model: PathBuf,
     /// Input tensor (.npy, float32, 5 dimensions).
     #[arg(long, value_name = "IN.npy")]
-    pub input_npy: PathBuf,
+    pub(crate) input_npy: PathBuf,
     /// Where to write the output tensor (.npy, float32).
     #[arg(long, value_name = "OUT.npy")]
-    pub output_npy: PathBuf,
+    pub(crate) output_npy: PathBuf,
     /// How ONNX Runtime runs the network.
     #[command(flatten)]
-    pub runtime: RuntimeArgs,
+    pub(crate) runtime: RuntimeArgs,
     /// Overwrite an existing output file.
     #[arg(long)]
-    pub force: bool,
+    pub(crate) force: bool,
 }
 
 /// Runs `v2ce model import`.

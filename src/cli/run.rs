@@ -15,99 +15,99 @@ use crate::limits::parse_size;
 pub struct RunArgs {
     /// TOML configuration file (the flags below override it); see config/v2ce.toml.
     #[arg(long)]
-    pub config: Option<PathBuf>,
+    pub(crate) config: Option<PathBuf>,
     /// A camera (/dev/video0 or an index), a file or image folder, or `fixture` [config default:
     /// "", the first camera, else the fixture].
     #[arg(long)]
-    pub source: Option<String>,
+    pub(crate) source: Option<String>,
     /// Send UDP datagrams to HOST:PORT (an empty string turns UDP off) [config default:
     /// 127.0.0.1:3333].
     #[arg(long)]
-    pub udp: Option<String>,
+    pub(crate) udp: Option<String>,
     /// Datagram format: spif, spif_timestamped, t64_x16_y16_on8, t32_x16_y15_on1 [config
     /// default: spif].
     #[arg(long)]
-    pub udp_format: Option<String>,
+    pub(crate) udp_format: Option<String>,
     /// Largest UDP payload in bytes [config default: 512, which aestream and SpiNNaker's SPIF
     /// listener read whole].
     #[arg(long)]
-    pub udp_payload: Option<usize>,
+    pub(crate) udp_payload: Option<usize>,
     /// Most UDP datagrams per second (0: unpaced) [config default: 0].
     #[arg(long)]
-    pub udp_rate: Option<u32>,
+    pub(crate) udp_rate: Option<u32>,
     /// UDP socket send buffer to ask for, bytes (0: the kernel's default) [config default: 0].
     #[arg(long, value_name = "BYTES")]
-    pub udp_send_buffer: Option<usize>,
+    pub(crate) udp_send_buffer: Option<usize>,
     /// When UDP events leave: event-time (each at its own time + the delay) or asap
     /// [config default: event-time].
     #[arg(long, value_enum)]
-    pub emit: Option<crate::config::EmitMode>,
+    pub(crate) emit: Option<crate::config::EmitMode>,
     /// How far behind the frames events leave at event time, ms [config default: 100].
     #[arg(long)]
-    pub emit_delay_ms: Option<f64>,
+    pub(crate) emit_delay_ms: Option<f64>,
     /// Realtime priority of the thread that sends at event time, 1-99 (0: normal scheduling)
     /// [config default: 10, when the process may].
     #[arg(long)]
-    pub emit_priority: Option<u8>,
+    pub(crate) emit_priority: Option<u8>,
     /// Sensor preset of the physics tier: davis346, dvxplorer, ideal [config default: davis346].
     #[arg(long)]
-    pub preset: Option<String>,
+    pub(crate) preset: Option<String>,
     /// A preset file (as `v2ce calibrate` writes) instead of --preset [config default: "",
     /// none].
     #[arg(long, conflicts_with = "preset")]
-    pub preset_file: Option<PathBuf>,
+    pub(crate) preset_file: Option<PathBuf>,
     /// Serve an event stream to TCP clients on HOST:PORT [config default: "", off].
     #[arg(long)]
-    pub tcp: Option<String>,
+    pub(crate) tcp: Option<String>,
     /// What TCP clients receive: aedat4 (DV's network stream), evt2 or evt3 (Prophesee RAW,
     /// a .raw file's bytes) [config default: aedat4].
     #[arg(long, value_enum)]
-    pub tcp_format: Option<crate::sink::tcp::TcpFormat>,
+    pub(crate) tcp_format: Option<crate::sink::tcp::TcpFormat>,
     /// Hold the source until the first TCP client has connected.
     #[arg(long)]
-    pub wait_for_client: bool,
+    pub(crate) wait_for_client: bool,
     /// Also write the events to this file (.aedat4, .raw, .csv, .npz, .h5) [config default: "",
     /// none].
     #[arg(long)]
-    pub out: Option<String>,
+    pub(crate) out: Option<String>,
     /// Seed of mismatch, noise and sampling [config default: 0].
     #[arg(long)]
-    pub seed: Option<u64>,
+    pub(crate) seed: Option<u64>,
     /// A full queue: block (lose nothing) or drop-oldest (stay live) [config default:
     /// drop-oldest].
     #[arg(long)]
-    pub queue_policy: Option<String>,
+    pub(crate) queue_policy: Option<String>,
     /// Stop after this many seconds [config default: 0, no limit].
     #[arg(long)]
-    pub duration: Option<f64>,
+    pub(crate) duration: Option<f64>,
     /// Stop after this many frames [config default: 0, no limit].
     #[arg(long)]
-    pub max_frames: Option<u64>,
+    pub(crate) max_frames: Option<u64>,
     /// Resample frames to WIDTHxHEIGHT [config default: "", the source's size].
     #[arg(long, value_name = "WxH")]
-    pub size: Option<String>,
+    pub(crate) size: Option<String>,
     /// Replay a file at this multiple of real time [config default: 1].
     #[arg(long)]
-    pub replay_speed: Option<f64>,
+    pub(crate) replay_speed: Option<f64>,
     /// Replay a file again and again.
     #[arg(long = "loop")]
-    pub loop_source: bool,
+    pub(crate) loop_source: bool,
     /// Seconds between stats lines [config default: 10].
     #[arg(long)]
-    pub stats_interval: Option<f64>,
+    pub(crate) stats_interval: Option<f64>,
     /// Serve /metrics, /healthz, /readyz and the live preview page on IP:PORT (port 0: any;
     /// the address is logged) [config default: off]
     #[arg(long, value_name = "IP:PORT")]
-    pub http: Option<String>,
+    pub(crate) http: Option<String>,
     /// /readyz turns not ready after this many seconds without a frame [config default: 2]
     #[arg(long)]
-    pub ready_timeout: Option<f64>,
+    pub(crate) ready_timeout: Option<f64>,
     /// Print the final report as one JSON object on stdout.
     #[arg(long)]
-    pub json: bool,
+    pub(crate) json: bool,
     /// The Stage 1 tier and its settings.
     #[command(flatten)]
-    pub tier: TierArgs,
+    pub(crate) tier: TierArgs,
 }
 
 /// The flags of `v2ce bench`.
@@ -116,30 +116,30 @@ pub struct RunArgs {
 pub struct BenchArgs {
     /// Another measurement instead of the daemon's.
     #[command(subcommand)]
-    pub what: Option<BenchCommand>,
+    pub(crate) what: Option<BenchCommand>,
     /// Seconds per configuration.
     #[arg(long, default_value_t = 30.0)]
-    pub seconds: f64,
+    pub(crate) seconds: f64,
     /// Sizes to measure.
     #[arg(long, value_delimiter = ',', default_value = "346x260,640x480")]
-    pub sizes: Vec<String>,
+    pub(crate) sizes: Vec<String>,
     /// Print the results as JSON lines.
     #[arg(long)]
-    pub json: bool,
+    pub(crate) json: bool,
     /// Replay the fixture at this multiple of real time (below 1 for a tier slower than real
     /// time).
     #[arg(long, default_value_t = 1.0)]
-    pub replay_speed: f64,
+    pub(crate) replay_speed: f64,
     /// Run the HTTP listener on IP:PORT during the bench (to measure what it, a scraper and an
     /// open preview page cost)
     #[arg(long, value_name = "IP:PORT")]
-    pub http: Option<String>,
+    pub(crate) http: Option<String>,
     /// TOML configuration for Stage 1 and Stage 2 (the flags below override it).
     #[arg(long)]
-    pub config: Option<PathBuf>,
+    pub(crate) config: Option<PathBuf>,
     /// The Stage 1 tier and its settings.
     #[command(flatten)]
-    pub tier: TierArgs,
+    pub(crate) tier: TierArgs,
 }
 
 /// The `v2ce bench` subcommands.

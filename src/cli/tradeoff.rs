@@ -12,43 +12,43 @@ use crate::limits::parse_size;
 pub struct TradeoffArgs {
     /// A recording with frames and events (.aedat4 with APS frames, or events with --frames).
     #[arg(long)]
-    pub real: Option<PathBuf>,
+    pub(crate) real: Option<PathBuf>,
     /// The recording's frames, when it has none in it.
     #[arg(long)]
-    pub frames: Option<PathBuf>,
+    pub(crate) frames: Option<PathBuf>,
     /// Which of the recording's frame intervals are scored (models trained by `v2ce dataset
     /// recording --split first` are scored on the second).
     #[arg(long, value_enum, default_value_t = crate::dataset::Split::Second)]
-    pub split: crate::dataset::Split,
+    pub(crate) split: crate::dataset::Split,
     /// Synthetic sequences to score on (made again from --synthetic-seed, as `v2ce dataset
     /// synthetic` makes them; 0: none).
     #[arg(long, default_value_t = 8)]
-    pub synthetic: usize,
+    pub(crate) synthetic: usize,
     /// Their seed (2: the validation set of the shipped models' cards).
     #[arg(long, default_value_t = 2)]
-    pub synthetic_seed: u64,
+    pub(crate) synthetic_seed: u64,
     /// Natural-image textures for them (as given to `v2ce dataset synthetic`).
     #[arg(long)]
-    pub images: Option<PathBuf>,
+    pub(crate) images: Option<PathBuf>,
     /// Their frame size.
     #[arg(long, value_name = "WxH", default_value = "160x120")]
-    pub size: String,
+    pub(crate) size: String,
     /// More learned models to measure (ONNX), beside the built-in one.
     #[arg(long)]
-    pub model: Vec<PathBuf>,
+    pub(crate) model: Vec<PathBuf>,
     /// Print the rows as JSON lines instead of tables.
     #[arg(long)]
-    pub json: bool,
+    pub(crate) json: bool,
     /// Also score on this many still-camera synthetic sequences (steady light, clean frames,
     /// only objects move; seed --synthetic-seed), where the learned tier's crops save compute.
     #[arg(long, default_value_t = 0)]
-    pub still: usize,
+    pub(crate) still: usize,
     /// Their frame size.
     #[arg(long, value_name = "WxH", default_value = "320x240")]
-    pub still_size: String,
+    pub(crate) still_size: String,
     /// Also draw TF1 against speed with the Pareto front, as a PNG here.
     #[arg(long, value_name = "OUT.png")]
-    pub plot: Option<PathBuf>,
+    pub(crate) plot: Option<PathBuf>,
 }
 
 /// Runs `v2ce bench tradeoff`.

@@ -14,7 +14,7 @@
 
 mod metrics;
 
-pub use metrics::{metrics, BUCKETS_S};
+pub use metrics::metrics;
 
 use std::io::Write as _;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};

@@ -174,11 +174,6 @@ impl<T: Weight> QueueTx<T> {
         self.stats.pushed.fetch_add(1, Ordering::Relaxed);
         Ok(())
     }
-
-    /// The queue's counters.
-    pub fn stats(&self) -> &Arc<QueueStats> {
-        &self.stats
-    }
 }
 
 impl<T> QueueRx<T> {
