@@ -717,4 +717,23 @@ mod tests {
         );
         assert_eq!(send_buffer(10), default, "a slow rate keeps the default");
     }
+
+    #[test]
+    fn a_send_buffer_asked_for_is_given_up_to_the_kernels_cap() {
+        let mut c = asap("127.0.0.1:9", UdpFormat::Spif);
+        let default = set_socket_buffer(&UdpSink::new(&c, 1.0).unwrap().socket, libc::SO_SNDBUF, 0);
+        let cap = std::fs::read_to_string("/proc/sys/net/core/wmem_max")
+            .ok()
+            .and_then(|t| t.trim().parse::<usize>().ok())
+            .map_or(usize::MAX, |m| 2 * m);
+        c.send_buffer = 1 << 20;
+        let sink = UdpSink::new(&c, 1.0).unwrap();
+        let got = set_socket_buffer(&sink.socket, libc::SO_SNDBUF, 0);
+        assert!(
+            got >= (1usize << 20).min(cap).max(default),
+            "{got} (cap {cap})"
+        );
+        c.send_buffer = 2 << 30;
+        assert!(UdpSink::new(&c, 1.0).is_err(), "more than 1 GiB");
+    }
 }
