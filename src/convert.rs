@@ -1,4 +1,4 @@
-//! Frames to events, offline: a frame source through the [`pipeline`] with
+//! Frames to events, offline: a frame source through the pipeline (`src/pipeline`) with
 //! every queue blocking (nothing is ever dropped), as fast as the stages go.
 //!
 //! Memory stays at a few frames and their events, whatever the video's length.

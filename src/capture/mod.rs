@@ -109,7 +109,7 @@ impl Default for CameraConfig {
 }
 
 impl CameraConfig {
-    /// Checks the request: a size within [`crate::limits::MAX_SIDE`], a finite positive
+    /// Checks the request: a size within `limits::MAX_SIDE`, a finite positive
     /// frame rate up to 10,000, at least one pixel format, 2 to 32 driver buffers.
     pub fn validate(&self) -> crate::error::Result<()> {
         use crate::error::Error;

@@ -1,6 +1,6 @@
 //! The UDP datagram word layouts that neuromorphic receivers listen for: how one event becomes
 //! bytes in a datagram, and back. The sockets are [`crate::sink::udp`]'s and
-//! [`crate::listen`]'s.
+//! `v2ce listen`'s.
 //!
 //! Every layout is little-endian and a datagram holds whole events.
 //!

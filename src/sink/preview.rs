@@ -1,5 +1,5 @@
 //! The live preview's tap: a sink that keeps the daemon's events of the last seconds for the
-//! HTTP listener's page ([`crate::http`]) to draw, as `v2ce render` draws a file.
+//! HTTP listener's page (`src/http`) to draw, as `v2ce render` draws a file.
 
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};

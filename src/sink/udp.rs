@@ -11,7 +11,7 @@
 //! default: a datagram holds the events due within one `slice` and leaves when the last of them
 //! is due, so none arrives early; see [`super::emit`]). The sending thread wakes
 //! `WAKE_GRACE` (0.2 ms) after a datagram is due and sends every datagram due by then, and runs at
-//! realtime priority when allowed ([`crate::realtime`]), so its wakes are few and on time. For `spif`, which carries no
+//! realtime priority when allowed (`src/realtime.rs`), so its wakes are few and on time. For `spif`, which carries no
 //! timestamps, the arrival time is the event time. An optional pacing limit (datagrams per
 //! second) spaces the datagrams out further. Both sleep the sending thread only, which in the
 //! daemon is the sink's own.
