@@ -286,7 +286,7 @@ fn ffmpeg_source_uses_presentation_timestamps() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// The illumination ladder (README): with scene-relative light (`scene_level`), the davis346
+/// The illumination ladder (docs/results.md): with scene-relative light (`scene_level`), the davis346
 /// preset's event count stays within 20% of its mid-light count from 1/64 to 4 times the light
 /// (a log pixel above its bandwidth limit sees only contrast), and within 0.5-2x up to 16x,
 /// where the brightest parts of the scene saturate; without it the count collapses below

@@ -12,7 +12,7 @@ use crate::limits::parse_size;
 #[derive(Subcommand)]
 pub enum DatasetCommand {
     /// Random scenes rendered at a high rate; ground truth from the physics tier, inputs at
-    /// video rate (README: "Training data").
+    /// video rate (docs/learned.md: "Training data and training").
     Synthetic(SyntheticArgs),
     /// Windows of a recording's frames with its real events, from one half of it by time.
     Recording(DatasetRecordingArgs),

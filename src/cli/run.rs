@@ -147,7 +147,7 @@ pub struct BenchArgs {
 pub enum BenchCommand {
     /// Every Stage 1 tier and setting on the same frames: speed (pairs/s, window latency) and
     /// accuracy (TF1, TPF1, count ratio, C-METE) against a real recording's held-out half and
-    /// synthetic sequences, with the Pareto front (README: "The speed/accuracy trade").
+    /// synthetic sequences, with the Pareto front (docs/learned.md: "The speed/accuracy trade").
     Tradeoff(TradeoffArgs),
 }
 

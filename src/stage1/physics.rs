@@ -110,7 +110,7 @@ pub struct PhysicsConfig {
     /// parameters were calibrated on: a scene whose first frame is `g` times brighter or darker
     /// on average has its dark current, lin-log knee, photoreceptor bandwidth curve and
     /// shot-noise half-light scaled by `g`, so only its contrast matters, as for a log pixel
-    /// above its bandwidth limit (the illumination ladder, README).
+    /// above its bandwidth limit (the illumination ladder, docs/results.md).
     pub scene_level: f64,
     /// Where the scene's light comes from (see [`LightModel`]).
     pub light: LightModel,
@@ -159,7 +159,7 @@ impl Default for PhysicsConfig {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "kebab-case")]
 pub enum Preset {
-    /// A DAVIS346 in daylight (calibrated on the davis346 recording; see the README).
+    /// A DAVIS346 in daylight (calibrated on the davis346 recording; see docs/physics.md).
     #[default]
     Davis346,
     /// A DVXplorer: lower thresholds, no APS, faster front end.

@@ -147,7 +147,7 @@ pub enum SamplerKind {
 }
 
 impl SamplerKind {
-    /// Every sampler, in the order the README's tables list them.
+    /// Every sampler, in the order the tables of docs/results.md list them.
     pub const ALL: [SamplerKind; 5] = [
         SamplerKind::Even,
         SamplerKind::Random,
