@@ -156,7 +156,7 @@ pub fn convert(args: ConvertArgs) -> Result<()> {
         report.events,
         report.seconds,
         report.frames as f64 / report.seconds.max(1e-9),
-        s1.summary
+        s1.summary()
     );
     if s1.nonfinite > 0 || report.repaired.any() {
         eprintln!(

@@ -94,18 +94,59 @@ impl Counter {
     }
 }
 
-/// A tier's own counters: what it reports in its section of a report, and the [`Counter`]s
-/// it exports. The zero record stands for a tier that did not run.
-pub trait TierRecord: Serialize + Default {
+/// A tier's own counters: what it reports in its section of a report, the words of its
+/// summary, and the [`Counter`]s it exports. The zero record stands for a tier that did not
+/// run.
+pub trait TierRecord: Serialize + Default + std::fmt::Debug + Send + Sync + 'static {
     /// The tier's name, the key of its section in reports.
     const TIER: &'static str;
+    /// What the tier did, in words, given its window and stride.
+    fn summary(&self, window: usize, stride: usize) -> String;
     /// The counters this record holds, for `/metrics`.
     fn counters(&self) -> Vec<Counter>;
 }
 
-/// A record as JSON text, its fields in their declared order.
-pub fn record_json<R: TierRecord>(record: &R) -> Box<RawValue> {
-    serde_json::value::to_raw_value(record).unwrap_or_else(|_| null())
+/// A tier's record as [`Stage1Stats`] carries it: read only when asked (a report, a scrape,
+/// the end of a conversion), so publishing the stats after every frame costs a copy.
+pub trait Record: std::fmt::Debug + Send + Sync {
+    /// See [`TierRecord::summary`].
+    fn summary(&self, window: usize, stride: usize) -> String;
+    /// See [`TierRecord::counters`].
+    fn counters(&self) -> Vec<Counter>;
+    /// The record as JSON text, its fields in their declared order.
+    fn json(&self) -> Box<RawValue>;
+}
+
+impl<R: TierRecord> Record for R {
+    fn summary(&self, window: usize, stride: usize) -> String {
+        TierRecord::summary(self, window, stride)
+    }
+
+    fn counters(&self) -> Vec<Counter> {
+        TierRecord::counters(self)
+    }
+
+    fn json(&self) -> Box<RawValue> {
+        serde_json::value::to_raw_value(self).unwrap_or_else(|_| null())
+    }
+}
+
+/// The record of stats no tier has filled yet.
+#[derive(Debug)]
+struct NoRecord;
+
+impl Record for NoRecord {
+    fn summary(&self, _: usize, _: usize) -> String {
+        String::new()
+    }
+
+    fn counters(&self) -> Vec<Counter> {
+        Vec::new()
+    }
+
+    fn json(&self) -> Box<RawValue> {
+        null()
+    }
 }
 
 fn null() -> Box<RawValue> {
@@ -117,7 +158,7 @@ fn null() -> Box<RawValue> {
 fn zero_sections() -> Vec<(&'static str, Box<RawValue>, Vec<Counter>)> {
     fn zero<R: TierRecord>() -> (&'static str, Box<RawValue>, Vec<Counter>) {
         let r = R::default();
-        (R::TIER, record_json(&r), r.counters())
+        (R::TIER, Record::json(&r), TierRecord::counters(&r))
     }
     vec![zero::<PhysicsStats>(), zero::<LearnedStats>()]
 }
@@ -125,12 +166,12 @@ fn zero_sections() -> Vec<(&'static str, Box<RawValue>, Vec<Counter>)> {
 /// Every tier's counters, each with the value `stats` holds (zero for the tiers that did not
 /// run): the families `/metrics` always exports.
 pub fn all_counters(stats: &Stage1Stats) -> Vec<Counter> {
+    let own = &stats.record.counters();
     zero_sections()
         .into_iter()
         .flat_map(|(tier, _, zeros)| {
             zeros.into_iter().map(move |zero| {
-                let value = stats
-                    .counters
+                let value = own
                     .iter()
                     .find(|c| {
                         tier == stats.tier && c.family == zero.family && c.result == zero.result
@@ -159,12 +200,15 @@ pub struct Stage1Stats {
     pub compute: f64,
     /// Values the tier's model gave that were NaN or infinite.
     pub nonfinite: u64,
+    /// The tier's own record: its section of a report, its summary and its counters.
+    pub record: std::sync::Arc<dyn Record>,
+}
+
+impl Stage1Stats {
     /// What the tier did, in words, for the end of a conversion's report line.
-    pub summary: String,
-    /// The tier's named counters.
-    pub counters: Vec<Counter>,
-    /// The tier's own record, as JSON ([`record_json`]): its section of a report.
-    pub record: Box<RawValue>,
+    pub fn summary(&self) -> String {
+        self.record.summary(self.window, self.stride)
+    }
 }
 
 impl Default for Stage1Stats {
@@ -176,9 +220,7 @@ impl Default for Stage1Stats {
             window_ms_p50: 0.0,
             compute: 1.0,
             nonfinite: 0,
-            summary: String::new(),
-            counters: Vec::new(),
-            record: null(),
+            record: std::sync::Arc::new(NoRecord),
         }
     }
 }
@@ -195,7 +237,7 @@ impl Serialize for Stage1Stats {
         m.serialize_field("stride", &self.stride)?;
         for (tier, zero, _) in &sections {
             if *tier == self.tier {
-                m.serialize_field(tier, &self.record)?;
+                m.serialize_field(tier, &self.record.json())?;
             } else {
                 m.serialize_field(tier, zero)?;
             }

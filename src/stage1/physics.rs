@@ -379,6 +379,14 @@ pub struct PhysicsStats {
 impl super::TierRecord for PhysicsStats {
     const TIER: &'static str = "physics";
 
+    fn summary(&self, _window: usize, _stride: usize) -> String {
+        format!(
+            "{} of {} tiles skipped as static",
+            self.tiles_skipped,
+            self.tiles_skipped + self.tiles_active
+        )
+    }
+
     fn counters(&self) -> Vec<super::Counter> {
         super::Counter::family(
             "tiles",
@@ -1109,13 +1117,7 @@ impl super::Stage1 for PhysicsStage1 {
             tier: <PhysicsStats as super::TierRecord>::TIER,
             window: 1,
             stride: 1,
-            summary: format!(
-                "{} of {} tiles skipped as static",
-                physics.tiles_skipped,
-                physics.tiles_skipped + physics.tiles_active
-            ),
-            counters: super::TierRecord::counters(&physics),
-            record: super::record_json(&physics),
+            record: std::sync::Arc::new(physics),
             ..Default::default()
         }
     }

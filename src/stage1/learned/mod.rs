@@ -243,6 +243,18 @@ pub struct LearnedStats {
 impl super::TierRecord for LearnedStats {
     const TIER: &'static str = "learned";
 
+    fn summary(&self, window: usize, stride: usize) -> String {
+        format!(
+            "{} windows of L={window} (stride {stride}, {} skipped as still), median {:.0} ms \
+             per window on {}, the network ran on {:.0}% of the pixels",
+            self.windows,
+            self.windows_skipped,
+            self.window_ms_p50,
+            self.provider,
+            100.0 * self.compute()
+        )
+    }
+
     fn counters(&self) -> Vec<super::Counter> {
         super::Counter::family(
             "windows",
@@ -690,19 +702,7 @@ impl Stage1 for LearnedStage1 {
             window_ms_p50: learned.window_ms_p50,
             compute: learned.compute(),
             nonfinite: learned.nonfinite,
-            summary: format!(
-                "{} windows of L={} (stride {}, {} skipped as still), median {:.0} ms per window \
-                 on {}, the network ran on {:.0}% of the pixels",
-                learned.windows,
-                self.config.window,
-                self.config.stride(),
-                learned.windows_skipped,
-                learned.window_ms_p50,
-                learned.provider,
-                100.0 * learned.compute()
-            ),
-            counters: super::TierRecord::counters(&learned),
-            record: super::record_json(&learned),
+            record: std::sync::Arc::new(learned),
         }
     }
 
