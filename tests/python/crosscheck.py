@@ -256,10 +256,12 @@ def tcp(port, want):
     return compare(got, want, "dv_processing NetworkReader over TCP")
 
 
-def aestream_udp(port, want, width, height):
+def aestream_udp(port, want, width, height, allowed_loss=0.0):
     """aestream's UDP receiver (its C++ socket reads 512 bytes per datagram) accumulating
     per-pixel counts, as its PyTorch/Norse/snnTorch users get them, against the expected
-    events' per-pixel counts (all polarities)."""
+    events' per-pixel counts (all polarities). `allowed_loss` is the fraction of events that may
+    be missing in all (datagrams the kernel dropped when the receiving thread got no core); no
+    pixel may ever get more events than expected."""
     import time
 
     import aestream
@@ -284,6 +286,11 @@ def aestream_udp(port, want, width, height):
         return 0
     bad = np.argwhere(got != expect)
     x, y = bad[0]
+    missing = len(want) - got.sum()
+    if (got <= expect).all() and missing <= allowed_loss * len(want):
+        print(f"OK aestream: {got.sum()} of {len(want)} events ({missing / len(want):.4%} lost, "
+              f"allowed {allowed_loss:.2%}), no pixel over its count")
+        return 0
     print(f"MISMATCH aestream: {got.sum()} of {len(want)} events; {len(bad)} pixels differ, "
           f"first ({x}, {y}): got {got[x, y]} expected {expect[x, y]}")
     return 1
@@ -326,7 +333,9 @@ def main(argv):
     if mode == "udp":
         return udp(argv[2], int(argv[3]), expected(argv[4]), int(argv[5]), int(argv[6]))
     if mode == "aestream":
-        return aestream_udp(int(argv[2]), expected(argv[3]), int(argv[4]), int(argv[5]))
+        allowed_loss = float(argv[6]) if len(argv) > 6 else 0.0
+        return aestream_udp(int(argv[2]), expected(argv[3]), int(argv[4]), int(argv[5]),
+                            allowed_loss)
     if mode == "tcp":
         return tcp(int(argv[2]), expected(argv[3]))
     print(f"unknown mode {mode}")
