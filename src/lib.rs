@@ -17,6 +17,7 @@ pub(crate) mod dataset;
 pub mod error;
 pub mod eval;
 pub mod event;
+pub mod flow;
 pub mod format;
 pub mod frame;
 pub(crate) mod http;

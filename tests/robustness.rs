@@ -649,8 +649,13 @@ fn cases(dir: &Path) -> Vec<Case> {
         "exposure_us",
         "flicker_hz",
         "flicker_depth",
+        "max_step_px",
+        "max_subframes",
     ] {
         keys.push(("stage1.physics".into(), k.into()));
+    }
+    for k in ["light", "motion", "flow_preset"] {
+        text_keys.push(("stage1.physics".into(), k.into()));
     }
     assert!(keys.len() > 40, "{keys:?}");
     assert!(text_keys.len() > 15, "{text_keys:?}");

@@ -85,6 +85,16 @@ impl Source {
             backoff: (Duration::from_millis(500), Duration::from_secs(10)),
         }
     }
+
+    /// The frames' pace: a camera's is real time, a paced replay's its speed; an unpaced file
+    /// has none (`None`).
+    pub fn speed(&self) -> Option<f64> {
+        if self.live {
+            Some(1.0)
+        } else {
+            self.pace
+        }
+    }
 }
 
 /// How the pipeline runs.
@@ -257,12 +267,15 @@ pub fn run(
     on_tick: &mut dyn FnMut(&Snapshot),
 ) -> Result<Report> {
     let Stages {
-        stage1,
+        mut stage1,
         sampler,
         sinks,
     } = stages;
     if sinks.is_empty() {
         return Err(Error::invalid("sinks", "no output configured"));
+    }
+    if let Some(speed) = source.speed() {
+        stage1.pace(speed);
     }
     let size = source.first.size();
     let counters = options
@@ -395,6 +408,8 @@ fn capture_stage(
     ctx: &Ctx,
     times: &Mutex<(Option<i64>, Option<i64>)>,
 ) -> End {
+    // The replay clock's speed (cameras: 1); unpaced files have no clock to lag behind.
+    let clock_speed = source.speed();
     let Source {
         first,
         mut reopen,
@@ -420,8 +435,6 @@ fn capture_stage(
     let mut generation = 0u64;
     let (mut offset, mut period, mut realign) = (0i64, 0i64, false);
     let mut last_t: Option<i64> = None;
-    // The replay clock's speed (cameras: 1); unpaced files have no clock to lag behind.
-    let clock_speed = if live { Some(1.0) } else { pace };
     let mut lag_anchor: Option<(i64, Instant)> = None;
     loop {
         if ctx.stopping() {

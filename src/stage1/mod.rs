@@ -13,6 +13,7 @@
 
 pub mod auto;
 pub mod learned;
+pub mod motion;
 pub mod physics;
 
 use serde::{Deserialize, Serialize};
@@ -26,6 +27,7 @@ use crate::interval::Interval;
 use crate::voxel::VoxelGrid;
 
 pub use learned::{Geometry, LearnedConfig, LearnedStage1, LearnedStats};
+pub use motion::{Motion, MotionStats};
 pub use physics::{LightModel, PhysicsConfig, PhysicsSim, PhysicsStage1, PhysicsStats, Preset};
 
 /// What Stage 1 hands to Stage 2 for one frame interval.
@@ -269,6 +271,12 @@ pub trait Stage1: Send {
 
     /// What this tier is, for logs (`physics (preset davis346)`, `learned (model.onnx, L=16)`).
     fn describe(&self) -> String;
+
+    /// A live run: frames arrive at their own times divided by `speed`, and the tier must keep
+    /// up. A tier with a knob of cost may turn it down while its work per frame outgrows the
+    /// frames' pace, and say so (the physics tier lowers its sub-frame cap). Offline runs never
+    /// call this, so their output depends on their input alone.
+    fn pace(&mut self, _speed: f64) {}
 }
 
 /// What a wrapper adds to the tier it wraps (see [`Tapped`]): a look at each batch the tier
@@ -332,6 +340,10 @@ impl<T: Tap> Stage1 for Tapped<T> {
 
     fn describe(&self) -> String {
         self.tap.describe(self.tier.describe())
+    }
+
+    fn pace(&mut self, speed: f64) {
+        self.tier.pace(speed)
     }
 }
 
@@ -411,6 +423,10 @@ pub struct PhysicsOverrides {
     pub exposure_us: Option<f64>,
     pub flicker_hz: Option<f64>,
     pub flicker_depth: Option<f64>,
+    pub motion: Option<Motion>,
+    pub max_step_px: Option<f64>,
+    pub max_subframes: Option<u32>,
+    pub flow_preset: Option<crate::flow::FlowPreset>,
 }
 
 impl PhysicsOverrides {
@@ -437,7 +453,11 @@ impl PhysicsOverrides {
             light,
             exposure_us,
             flicker_hz,
-            flicker_depth
+            flicker_depth,
+            motion,
+            max_step_px,
+            max_subframes,
+            flow_preset
         );
         base
     }

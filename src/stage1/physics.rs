@@ -71,8 +71,10 @@ use rand_distr::{Distribution, Normal, Poisson};
 use rand_xoshiro::Xoshiro256PlusPlus;
 use serde::{Deserialize, Serialize};
 
+use super::motion::{Motion, MotionStats, Subframes};
 use crate::error::{Error, Result};
 use crate::event::{sort_events, Event};
+use crate::flow::FlowPreset;
 use crate::frame::{Frame, FULL_SCALE};
 
 /// Parameters of the pixel model (see the module docs). Every one is a config key.
@@ -124,6 +126,15 @@ pub struct PhysicsConfig {
     pub flicker_hz: f64,
     /// Depth of the flicker: the light is `I (1 + depth sin(2 pi flicker_hz t))`, 0 to 0.99.
     pub flicker_depth: f64,
+    /// How the light moves between frames: `linear` interpolation per pixel, or sub-frames
+    /// warped along the optical `flow` (see [`super::motion`]).
+    pub motion: Motion,
+    /// Under `motion = "flow"`: the most a pixel may move per sub-frame, pixels.
+    pub max_step_px: f64,
+    /// Under `motion = "flow"`: the most intervals a frame interval is cut into (1: linear).
+    pub max_subframes: u32,
+    /// Under `motion = "flow"`: the optical flow's speed/quality preset.
+    pub flow_preset: FlowPreset,
 }
 
 /// How the pixel model learns how bright a scene is. A frame's values say only how bright it
@@ -218,6 +229,10 @@ impl Preset {
                 exposure_us: 500.0,
                 flicker_hz: 0.0,
                 flicker_depth: 0.0,
+                motion: Motion::Linear,
+                max_step_px: 1.0,
+                max_subframes: 8,
+                flow_preset: FlowPreset::Fast,
             },
             Preset::Dvxplorer => PhysicsConfig {
                 threshold_on: 0.25,
@@ -240,6 +255,10 @@ impl Preset {
                 exposure_us: 500.0,
                 flicker_hz: 0.0,
                 flicker_depth: 0.0,
+                motion: Motion::Linear,
+                max_step_px: 1.0,
+                max_subframes: 8,
+                flow_preset: FlowPreset::Fast,
             },
             Preset::Ideal => PhysicsConfig {
                 threshold_on: 0.2,
@@ -260,6 +279,10 @@ impl Preset {
                 exposure_us: 0.0,
                 flicker_hz: 0.0,
                 flicker_depth: 0.0,
+                motion: Motion::Linear,
+                max_step_px: 1.0,
+                max_subframes: 8,
+                flow_preset: FlowPreset::Fast,
             },
         }
     }
@@ -352,6 +375,18 @@ impl PhysicsConfig {
                 self.hot_pixel_fraction
             ));
         }
+        if !(self.max_step_px.is_finite() && (0.1..=100.0).contains(&self.max_step_px)) {
+            return bad(format!(
+                "max_step_px = {} must be in [0.1, 100] pixels",
+                self.max_step_px
+            ));
+        }
+        if !(1..=64).contains(&self.max_subframes) {
+            return bad(format!(
+                "max_subframes = {} must be 1..=64 (1: linear interpolation)",
+                self.max_subframes
+            ));
+        }
         if self.max_substeps == 0 || self.max_substeps > 4096 || !(1..=64).contains(&self.tile) {
             return bad("max_substeps must be 1..=4096 and tile 1..=64".into());
         }
@@ -374,28 +409,66 @@ pub struct PhysicsStats {
     pub refractory_drops: u64,
     /// Noise events (leak, shot, hot pixels).
     pub noise_events: u64,
+    /// What the motion model did (all zero under `motion = "linear"`).
+    pub motion: MotionStats,
 }
 
 impl super::TierRecord for PhysicsStats {
     const TIER: &'static str = "physics";
 
     fn summary(&self, _window: usize, _stride: usize) -> String {
-        format!(
+        let tiles = format!(
             "{} of {} tiles skipped as static",
             self.tiles_skipped,
             self.tiles_skipped + self.tiles_active
+        );
+        let m = &self.motion;
+        if m.flow_intervals == 0 {
+            return tiles;
+        }
+        let intervals = self.frames.saturating_sub(1).max(1);
+        format!(
+            "{tiles}; flow on {} of {intervals} intervals, {:.2} sub-frames per interval, \
+             {:.1} ms of flow per interval, {} fell back to linear",
+            m.flow_intervals,
+            m.subframes as f64 / intervals as f64,
+            m.flow_us as f64 * 1e-3 / m.flow_intervals as f64,
+            m.fallbacks
         )
     }
 
     fn counters(&self) -> Vec<super::Counter> {
-        super::Counter::family(
+        let m = &self.motion;
+        let mut counters = super::Counter::family(
             "tiles",
             "Tiles the pixel model updated or skipped as static.",
             &[
                 ("active", self.tiles_active),
                 ("skipped", self.tiles_skipped),
             ],
-        )
+        );
+        counters.extend(super::Counter::family(
+            "flow",
+            "Frame intervals whose optical flow ran (motion = \"flow\"), and those of them \
+             that fell back to linear interpolation (a scene cut, a change of light).",
+            &[("run", m.flow_intervals), ("fallback", m.fallbacks)],
+        ));
+        counters.extend(super::Counter::family(
+            "subframes",
+            "Sub-frames inserted between frames along the flow.",
+            &[("inserted", m.subframes)],
+        ));
+        counters.extend(super::Counter::family(
+            "flow_microseconds",
+            "Time spent computing optical flow, us.",
+            &[("spent", m.flow_us)],
+        ));
+        counters.extend(super::Counter::family(
+            "subframe_cap",
+            "Times a live run lowered the sub-frame cap to keep up with the frames.",
+            &[("lowered", m.cap_lowered)],
+        ));
+        counters
     }
 }
 
@@ -408,6 +481,7 @@ impl PhysicsStats {
         self.signal_events += o.signal_events;
         self.refractory_drops += o.refractory_drops;
         self.noise_events += o.noise_events;
+        self.motion.add(o.motion);
     }
 }
 
@@ -443,6 +517,8 @@ pub struct PhysicsSim {
     first_exposure: Option<u32>,
     /// A frame without an exposure under `light = "exposure"` has been reported.
     warned_exposure: bool,
+    /// Sub-frames along the flow (`motion = "flow"`).
+    motion: Option<Subframes>,
     stats: PhysicsStats,
 }
 
@@ -576,7 +652,18 @@ impl PhysicsSim {
         hot.dedup();
         let tiles = (width as usize).div_ceil(cfg.tile as usize)
             * (height as usize).div_ceil(cfg.tile as usize);
+        let motion = match cfg.motion {
+            Motion::Linear => None,
+            Motion::Flow => Some(Subframes::new(
+                cfg.flow_preset,
+                cfg.max_step_px,
+                cfg.max_subframes,
+                width,
+                height,
+            )?),
+        };
         Ok(PhysicsSim {
+            motion,
             width,
             height,
             seed,
@@ -603,7 +690,20 @@ impl PhysicsSim {
 
     /// The counters so far.
     pub fn stats(&self) -> PhysicsStats {
-        self.stats
+        let mut stats = self.stats;
+        if let Some(m) = &self.motion {
+            stats.motion = m.stats();
+        }
+        stats
+    }
+
+    /// A live run at `speed` (frames come at their times divided by it): the sub-frame cap
+    /// of `motion = "flow"` follows the time each interval takes, so the program lowers its
+    /// accuracy before the pipeline has to drop frames (see [`Subframes::spent`]).
+    pub fn pace(&mut self, speed: f64) {
+        if let Some(m) = &mut self.motion {
+            m.pace(speed);
+        }
     }
 
     /// Takes the next frame and appends the events of the interval since the previous one to
@@ -623,6 +723,7 @@ impl PhysicsSim {
                 ),
             ));
         }
+        let before = self.light_scale;
         let (g, photo) = self.frame_light(frame);
         if g != self.light_scale {
             self.light_scale = g;
@@ -663,8 +764,39 @@ impl PhysicsSim {
                 format!("{} us does not come after {t0} us", frame.t),
             ));
         }
+        let started = std::time::Instant::now();
         let start = out.len();
-        let filter = self.filter_table((frame.t - t0) as f64);
+        let mut t = t0;
+        if let Some(mut motion) = self.motion.take() {
+            // `prev_luma` is in the previous frame's units of light, the sub-frames in this
+            // frame's (an exposure change between them is not a change of light).
+            let scale0 = (g / before) as f32;
+            let tile = self.cfg.tile as usize;
+            for (t_sub, luma) in
+                motion.between(&self.prev_luma, scale0, &frame.luma, t0, frame.t, tile)
+            {
+                self.advance(luma, t, *t_sub, out);
+                t = *t_sub;
+            }
+            self.motion = Some(motion);
+        }
+        self.advance(&frame.luma, t, frame.t, out);
+        self.stats.signal_events += (out.len() - start) as u64;
+        self.noise(t0, frame, out);
+        self.prev_t = Some(frame.t);
+        self.stats.frames += 1;
+        sort_events(&mut out[start..]);
+        if let Some(motion) = &mut self.motion {
+            motion.spent(started.elapsed().as_secs_f64(), frame.t - t0);
+        }
+        Ok(())
+    }
+
+    /// Moves every pixel from its state at `t0` to the light `luma` at `t1` (the tiles whose
+    /// light did not change and whose pixels are at rest are skipped), appending the signal
+    /// events; `luma` becomes the previous light.
+    fn advance(&mut self, luma: &[u16], t0: i64, t1: i64, out: &mut Vec<Event>) {
+        let filter = self.filter_table((t1 - t0) as f64);
         let tile = self.cfg.tile as usize;
         let (w, h) = (self.width as usize, self.height as usize);
         let tiles_x = w.div_ceil(tile);
@@ -674,7 +806,7 @@ impl PhysicsSim {
                 let (x0, x1) = (tx * tile, ((tx + 1) * tile).min(w));
                 let (y0, y1) = (ty * tile, ((ty + 1) * tile).min(h));
                 let unchanged = (y0..y1).all(|y| {
-                    frame.luma[y * w + x0..y * w + x1] == self.prev_luma[y * w + x0..y * w + x1]
+                    luma[y * w + x0..y * w + x1] == self.prev_luma[y * w + x0..y * w + x1]
                 });
                 if unchanged && self.settled[ti] {
                     self.stats.tiles_skipped += 1;
@@ -684,18 +816,12 @@ impl PhysicsSim {
                 let mut settled = true;
                 for y in y0..y1 {
                     let row = y * w + x0..y * w + x1;
-                    settled &= self.row(row, &frame.luma, t0, frame.t, &filter, out);
+                    settled &= self.row(row, luma, t0, t1, &filter, out);
                 }
                 self.settled[ti] = settled;
             }
         }
-        self.stats.signal_events += (out.len() - start) as u64;
-        self.noise(t0, frame, out);
-        self.prev_luma.copy_from_slice(&frame.luma);
-        self.prev_t = Some(frame.t);
-        self.stats.frames += 1;
-        sort_events(&mut out[start..]);
-        Ok(())
+        self.prev_luma.copy_from_slice(luma);
     }
 
     /// Frame values per unit of calibration light in `frame` (see [`LightModel`]): for the
@@ -1032,6 +1158,8 @@ pub struct PhysicsStage1 {
     scratch: Vec<Event>,
     // Counters of the simulations before the last restart.
     earlier: PhysicsStats,
+    /// A live run's speed (see [`super::Stage1::pace`]), kept across restarts.
+    speed: Option<f64>,
 }
 
 impl PhysicsStage1 {
@@ -1059,6 +1187,7 @@ impl PhysicsStage1 {
             previous: None,
             scratch: Vec::new(),
             earlier: PhysicsStats::default(),
+            speed: None,
         })
     }
 }
@@ -1102,8 +1231,12 @@ impl super::Stage1 for PhysicsStage1 {
     /// comes from the same seed.
     fn restart(&mut self) -> Result<()> {
         let mut earlier = self.counters();
+        let speed = self.speed;
         *self = PhysicsStage1::new(&self.config, self.bins, self.size)?;
         std::mem::swap(&mut self.earlier, &mut earlier);
+        if let Some(speed) = speed {
+            super::Stage1::pace(self, speed);
+        }
         Ok(())
     }
 
@@ -1120,6 +1253,11 @@ impl super::Stage1 for PhysicsStage1 {
             record: std::sync::Arc::new(physics),
             ..Default::default()
         }
+    }
+
+    fn pace(&mut self, speed: f64) {
+        self.speed = Some(speed);
+        self.sim.pace(speed);
     }
 
     fn describe(&self) -> String {
