@@ -766,21 +766,30 @@ impl PhysicsSim {
         }
         let started = std::time::Instant::now();
         let start = out.len();
-        let mut t = t0;
+        let mut stepped = false;
         if let Some(mut motion) = self.motion.take() {
             // `prev_luma` is in the previous frame's units of light, the sub-frames in this
             // frame's (an exposure change between them is not a change of light).
             let scale0 = (g / before) as f32;
             let tile = self.cfg.tile as usize;
-            for (t_sub, luma) in
-                motion.between(&self.prev_luma, scale0, &frame.luma, t0, frame.t, tile)
-            {
-                self.advance(luma, t, *t_sub, out);
-                t = *t_sub;
+            let (subframes, moving) =
+                motion.between(&self.prev_luma, scale0, &frame.luma, t0, frame.t, tile);
+            if !subframes.is_empty() {
+                // Through the sub-frames where the scene moves, at once elsewhere.
+                let mut t = t0;
+                for (t_sub, luma) in subframes {
+                    self.advance(luma, t, *t_sub, Some((moving, true)), out);
+                    t = *t_sub;
+                }
+                self.advance(&frame.luma, t, frame.t, Some((moving, true)), out);
+                self.advance(&frame.luma, t0, frame.t, Some((moving, false)), out);
+                stepped = true;
             }
             self.motion = Some(motion);
         }
-        self.advance(&frame.luma, t, frame.t, out);
+        if !stepped {
+            self.advance(&frame.luma, t0, frame.t, None, out);
+        }
         self.stats.signal_events += (out.len() - start) as u64;
         self.noise(t0, frame, out);
         self.prev_t = Some(frame.t);
@@ -792,10 +801,18 @@ impl PhysicsSim {
         Ok(())
     }
 
-    /// Moves every pixel from its state at `t0` to the light `luma` at `t1` (the tiles whose
+    /// Moves the pixels from their state at `t0` to the light `luma` at `t1` (the tiles whose
     /// light did not change and whose pixels are at rest are skipped), appending the signal
-    /// events; `luma` becomes the previous light.
-    fn advance(&mut self, luma: &[u16], t0: i64, t1: i64, out: &mut Vec<Event>) {
+    /// events; `luma` becomes the previous light. `only: Some((mask, value))` moves only the
+    /// tiles whose mask entry is `value`.
+    fn advance(
+        &mut self,
+        luma: &[u16],
+        t0: i64,
+        t1: i64,
+        only: Option<(&[bool], bool)>,
+        out: &mut Vec<Event>,
+    ) {
         let filter = self.filter_table((t1 - t0) as f64);
         let tile = self.cfg.tile as usize;
         let (w, h) = (self.width as usize, self.height as usize);
@@ -803,6 +820,9 @@ impl PhysicsSim {
         for ty in 0..h.div_ceil(tile) {
             for tx in 0..tiles_x {
                 let ti = ty * tiles_x + tx;
+                if only.is_some_and(|(mask, value)| mask[ti] != value) {
+                    continue;
+                }
                 let (x0, x1) = (tx * tile, ((tx + 1) * tile).min(w));
                 let (y0, y1) = (ty * tile, ((ty + 1) * tile).min(h));
                 let unchanged = (y0..y1).all(|y| {
@@ -816,12 +836,12 @@ impl PhysicsSim {
                 let mut settled = true;
                 for y in y0..y1 {
                     let row = y * w + x0..y * w + x1;
-                    settled &= self.row(row, luma, t0, t1, &filter, out);
+                    settled &= self.row(row.clone(), luma, t0, t1, &filter, out);
+                    self.prev_luma[row.clone()].copy_from_slice(&luma[row]);
                 }
                 self.settled[ti] = settled;
             }
         }
-        self.prev_luma.copy_from_slice(luma);
     }
 
     /// Frame values per unit of calibration light in `frame` (see [`LightModel`]): for the
