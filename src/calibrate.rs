@@ -170,13 +170,20 @@ pub struct Flicker {
     pub events: usize,
 }
 
+/// The fewest frames a fit takes: 4 intervals, 2 per half.
+pub const MIN_FRAMES: usize = 5;
+
 /// Fits `base` to `rec` (see the module docs); `seed` seeds mismatch and noise.
 pub fn calibrate(rec: &Recording, base: &PhysicsConfig, seed: u64) -> Result<Calibration> {
     let n = rec.frames.len();
-    if n < 5 {
+    if n < MIN_FRAMES {
         return Err(Error::invalid(
             "calibrate",
-            format!("{n} frames; need at least 5 (4 intervals, 2 per half)"),
+            format!(
+                "the recording gives {n} frames; the fit needs at least {MIN_FRAMES} ({} \
+                 intervals, two per half)",
+                MIN_FRAMES - 1
+            ),
         ));
     }
     let intervals = intervals_between(rec.frames)?;

@@ -114,7 +114,7 @@ pub struct CalibrateArgs {
     /// How --frames' image values relate to the light (as convert's --color).
     #[arg(long, value_enum, default_value_t = crate::frame::images::ColorSpace::Auto)]
     pub(crate) color: crate::frame::images::ColorSpace,
-    /// Use at most this many frames (they are held in memory).
+    /// Use at most this many frames (they are held in memory; the fit needs at least 5).
     #[arg(long, default_value_t = 3000)]
     pub(crate) max_frames: usize,
     /// Print the report as one JSON object on stdout.
@@ -123,6 +123,9 @@ pub struct CalibrateArgs {
     /// Overwrite an existing output file.
     #[arg(long)]
     pub(crate) force: bool,
+    /// The motion model the fit simulates with (written into the preset file).
+    #[command(flatten)]
+    pub(crate) motion: super::MotionArgs,
 }
 
 /// Runs `v2ce dataset synthetic`.
@@ -223,20 +226,36 @@ pub fn dataset_recording(args: DatasetRecordingArgs) -> Result<()> {
 /// Runs `v2ce calibrate`: fits a preset and writes its file.
 pub fn calibrate(args: CalibrateArgs) -> Result<()> {
     check_output(&args.output, args.force)?;
-    let base = crate::stage1::Preset::from_name(&args.preset)?;
+    let preset = crate::stage1::Preset::from_name(&args.preset)?;
+    let mut overrides = crate::stage1::PhysicsOverrides::default();
+    args.motion.apply(&mut overrides);
+    let base = overrides.apply(preset.config());
+    base.validate()?;
+    let least = crate::calibrate::MIN_FRAMES;
+    if args.max_frames < least {
+        return Err(Error::invalid(
+            "--max-frames",
+            format!(
+                "{}: the fit needs at least {least} frames ({} intervals, two per half)",
+                args.max_frames,
+                least - 1
+            ),
+        ));
+    }
     let (real, frames) = crate::frame::load_recording(
         &args.real,
         args.frames.as_deref(),
         args.color,
-        args.max_frames.max(5),
+        args.max_frames,
     )?;
     let rec = crate::calibrate::Recording {
         frames: &frames,
         events: real.events.events(),
         size: (real.width, real.height),
     };
-    let fit = crate::calibrate::calibrate(&rec, &base.config(), args.seed)?;
-    let text = crate::calibrate::preset_file(&fit, base.name(), &args.real.display().to_string())?;
+    let fit = crate::calibrate::calibrate(&rec, &base, args.seed)?;
+    let text =
+        crate::calibrate::preset_file(&fit, preset.name(), &args.real.display().to_string())?;
     let tmp = args.output.with_extension("toml.partial");
     std::fs::write(&tmp, text).map_err(|e| Error::io(&tmp, e))?;
     std::fs::rename(&tmp, &args.output).map_err(|e| Error::io(&args.output, e))?;
@@ -245,10 +264,7 @@ pub fn calibrate(args: CalibrateArgs) -> Result<()> {
             serde_json::to_string(&fit).map_err(|e| Error::invalid("report", e.to_string()))?;
         println!("{text}");
     } else {
-        print!(
-            "{}",
-            crate::calibrate::report(&fit, &base.config(), base.name())
-        );
+        print!("{}", crate::calibrate::report(&fit, &base, preset.name()));
         eprintln!("v2ce: wrote {}", args.output.display());
     }
     Ok(())

@@ -183,22 +183,42 @@ pub struct TierArgs {
     /// Learned tier: run the network on whole frames, not only around what changed.
     #[arg(long)]
     pub(crate) no_roi: bool,
+    #[command(flatten)]
+    pub(crate) motion: MotionArgs,
+}
+
+/// How the physics tier sees motion between frames (`[stage1.physics]` motion keys); shared by
+/// `convert`, `run`, `bench` and `calibrate`.
+#[derive(Args)]
+pub struct MotionArgs {
     /// Physics tier: the light between frames, linear (per pixel) or flow (sub-frames warped
     /// along the optical flow) [config default: the preset's].
     #[arg(long, value_enum)]
     pub(crate) motion: Option<crate::stage1::Motion>,
     /// Physics tier, --motion flow: the most a pixel moves per sub-frame, pixels [config
-    /// default: the preset's, 1].
+    /// default: the preset's].
     #[arg(long, value_name = "PX")]
     pub(crate) max_step_px: Option<f64>,
     /// Physics tier, --motion flow: the most sub-frame intervals per frame interval (1:
-    /// linear) [config default: the preset's, 8].
+    /// linear) [config default: the preset's].
     #[arg(long, value_name = "N")]
     pub(crate) max_subframes: Option<u32>,
     /// Physics tier, --motion flow: the optical flow's preset, ultrafast, fast, medium
     /// [config default: the preset's].
     #[arg(long, value_enum)]
     pub(crate) flow_preset: Option<crate::flow::FlowPreset>,
+}
+
+impl MotionArgs {
+    /// Writes the flags given onto the physics tier's overrides.
+    pub fn apply(&self, physics: &mut crate::stage1::PhysicsOverrides) {
+        given!(
+            physics.motion => self.motion,
+            physics.max_step_px => self.max_step_px,
+            physics.max_subframes => self.max_subframes,
+            physics.flow_preset => self.flow_preset,
+        );
+    }
 }
 
 impl TierArgs {
@@ -219,11 +239,8 @@ impl TierArgs {
             stage1.learned.floor => self.floor,
             stage1.learned.roi_margin => self.roi_margin,
             stage1.budget_fps => self.budget_fps,
-            stage1.physics.motion => self.motion,
-            stage1.physics.max_step_px => self.max_step_px,
-            stage1.physics.max_subframes => self.max_subframes,
-            stage1.physics.flow_preset => self.flow_preset,
         );
+        self.motion.apply(&mut stage1.physics);
         stage1.learned.roi &= !self.no_roi;
         config.stage1.validate()?;
         config.stage1.learned.validate()

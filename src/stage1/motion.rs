@@ -84,8 +84,12 @@ const MIN_TRUSTED: f64 = 0.15;
 const MIN_SIDE: u16 = 16;
 /// In a live run, the share of the frame interval Stage 1 may spend before the cap falls.
 const LIVE_SHARE: f64 = 0.6;
-/// Intervals well inside the budget (under a third of it) before the cap rises by one.
+/// Intervals well inside the budget (under half of it) before the cap rises by one; doubled
+/// (up to `MAX_CALM_INTERVALS`) each time a raise has to be taken back within that many.
 const CALM_INTERVALS: u32 = 30;
+const MAX_CALM_INTERVALS: u32 = 30 * 64;
+/// Intervals the smoothed time needs after a change of cap before it may lower the cap.
+const SETTLE_INTERVALS: u32 = 3;
 
 /// What the motion model did, for the physics tier's record.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
@@ -126,9 +130,8 @@ pub struct Subframes {
     max_step_px: f64,
     max_subframes: u32,
     cap: u32,
-    /// A live run's speed (frames arrive at their times divided by it); `None` offline.
-    live: Option<f64>,
-    calm: u32,
+    /// A live run's cap keeper; `None` offline.
+    live: Option<Governor>,
     warned_error: bool,
     gray0: Vec<u8>,
     gray1: Vec<u8>,
@@ -161,7 +164,6 @@ impl Subframes {
             max_subframes,
             cap: max_subframes,
             live: None,
-            calm: 0,
             warned_error: false,
             gray0: Vec::new(),
             gray1: Vec::new(),
@@ -186,7 +188,7 @@ impl Subframes {
     /// A live run at `speed`: from now on the cap follows the time each interval takes (see
     /// [`Subframes::spent`]).
     pub fn pace(&mut self, speed: f64) {
-        self.live = (speed.is_finite() && speed > 0.0).then_some(speed);
+        self.live = (speed.is_finite() && speed > 0.0).then(|| Governor::new(speed));
     }
 
     /// The sub-frames between `f0` at `t0` and `f1` at `t1` (linear luminance, `f0`'s values
@@ -219,38 +221,19 @@ impl Subframes {
         (&self.frames, &self.moving)
     }
 
-    /// In a live run, the wall time the last interval (`interval_us` of frame time) took:
-    /// the cap halves when it passes `LIVE_SHARE` of the interval's wall time, and comes back
-    /// by one after `CALM_INTERVALS` intervals under a third of that.
+    /// In a live run, the wall time the last interval (`interval_us` of frame time) took;
+    /// the cap follows it (see [`Governor`]).
     pub fn spent(&mut self, seconds: f64, interval_us: i64) {
-        let Some(speed) = self.live else { return };
-        let budget = LIVE_SHARE * interval_us as f64 * 1e-6 / speed;
-        if seconds > budget && self.cap > 1 {
-            self.cap = (self.cap / 2).max(1);
-            self.calm = 0;
-            self.stats.cap_lowered += 1;
-            tracing::warn!(
-                "stage 1 took {:.1} ms of a {:.1} ms frame: sub-frame cap lowered to {} to \
-                 keep up (motion = \"flow\"; {} is linear interpolation)",
-                seconds * 1e3,
-                interval_us as f64 * 1e-3 / speed,
-                self.cap,
-                if self.cap == 1 { "this" } else { "1" }
-            );
-        } else if seconds < budget / 3.0 && self.cap < self.max_subframes {
-            self.calm += 1;
-            if self.calm >= CALM_INTERVALS {
-                self.calm = 0;
-                self.cap += 1;
-                tracing::info!(
-                    "stage 1 has time again: sub-frame cap raised to {}",
-                    self.cap
-                );
+        let Some(governor) = &mut self.live else {
+            return;
+        };
+        if let Some(cap) = governor.spent(seconds, interval_us, self.cap, self.max_subframes) {
+            if cap < self.cap {
+                self.stats.cap_lowered += 1;
             }
-        } else {
-            self.calm = 0;
+            self.cap = cap;
+            self.stats.cap = cap;
         }
-        self.stats.cap = self.cap;
     }
 
     /// How many intervals the frame interval needs (1: no sub-frames).
@@ -397,6 +380,87 @@ impl Subframes {
         let v = (w0 * v0 + w1 * v1) / (w0 + w1);
         // Non-negative: `+ 0.5` and truncation round it (no libm call in the loop).
         (v + 0.5).clamp(0.0, 65535.0) as u16
+    }
+}
+
+/// Keeps a live run's sub-frame cap where Stage 1 keeps up with the frames: the cap halves
+/// when the time per interval, smoothed over a few intervals, passes `LIVE_SHARE` of the
+/// interval's wall time, and rises by one after `CALM_INTERVALS` intervals under half of that.
+/// A raise taken back soon after doubles the wait before the next (a machine that cannot
+/// afford the flow at all settles on linear interpolation instead of trying every second).
+#[derive(Debug, Clone)]
+struct Governor {
+    speed: f64,
+    /// Smoothed seconds per interval since the last change of cap, and how many intervals.
+    smoothed: f64,
+    samples: u32,
+    calm: u32,
+    wait: u32,
+    /// Intervals since the last raise, while it may still be taken back.
+    since_raise: Option<u32>,
+}
+
+impl Governor {
+    fn new(speed: f64) -> Self {
+        Governor {
+            speed,
+            smoothed: 0.0,
+            samples: 0,
+            calm: 0,
+            wait: CALM_INTERVALS,
+            since_raise: None,
+        }
+    }
+
+    /// The new cap, if it changes, after an interval of `interval_us` took `seconds` at `cap`.
+    fn spent(&mut self, seconds: f64, interval_us: i64, cap: u32, most: u32) -> Option<u32> {
+        let frame = interval_us as f64 * 1e-6 / self.speed;
+        let budget = LIVE_SHARE * frame;
+        self.smoothed = if self.samples == 0 {
+            seconds
+        } else {
+            0.7 * self.smoothed + 0.3 * seconds
+        };
+        self.samples += 1;
+        if let Some(n) = &mut self.since_raise {
+            *n += 1;
+            if *n > 2 * self.wait {
+                // The raise held: the machine has the time, back to the short wait.
+                self.since_raise = None;
+                self.wait = CALM_INTERVALS;
+            }
+        }
+        if self.samples >= SETTLE_INTERVALS && self.smoothed > budget && cap > 1 {
+            let lowered = (cap / 2).max(1);
+            if self.since_raise.take().is_some() {
+                self.wait = (self.wait * 2).min(MAX_CALM_INTERVALS);
+            }
+            tracing::warn!(
+                "stage 1 takes {:.1} ms of a {:.1} ms frame: sub-frame cap lowered to {lowered} \
+                 to keep up (motion = \"flow\"; 1 is linear interpolation; next raise tried \
+                 after {} calm frames)",
+                self.smoothed * 1e3,
+                frame * 1e3,
+                self.wait
+            );
+            (self.samples, self.calm) = (0, 0);
+            return Some(lowered);
+        }
+        if self.smoothed < budget / 2.0 && cap < most {
+            self.calm += 1;
+            if self.calm >= self.wait {
+                tracing::info!(
+                    "stage 1 has time again: sub-frame cap raised to {}",
+                    cap + 1
+                );
+                (self.samples, self.calm) = (0, 0);
+                self.since_raise = Some(0);
+                return Some(cap + 1);
+            }
+        } else {
+            self.calm = 0;
+        }
+        None
     }
 }
 
@@ -671,7 +735,8 @@ mod tests {
     }
 
     /// A live run that cannot keep up halves the cap, down to linear interpolation, and says
-    /// so in its counters; with time to spare it raises the cap again, one step at a time.
+    /// so in its counters; with time to spare it raises the cap again, one step at a time, and
+    /// a raise taken back doubles the wait before the next.
     #[test]
     fn a_live_run_lowers_the_cap_to_keep_up() {
         let mut sub = Subframes::new(FlowPreset::Fast, 1.0, 8, W, H).unwrap();
@@ -679,14 +744,29 @@ mod tests {
         sub.spent(1.0, 33_333);
         assert_eq!(sub.stats().cap, 8);
         sub.pace(1.0);
-        for want in [4, 2, 1, 1] {
+        // One slow interval is not enough; a run of them is.
+        let mut caps = Vec::new();
+        for _ in 0..3 * SETTLE_INTERVALS {
             sub.spent(0.030, 33_333);
-            assert_eq!(sub.stats().cap, want);
+            caps.push(sub.stats().cap);
         }
+        assert_eq!(caps, [8, 8, 4, 4, 4, 2, 2, 2, 1]);
         assert_eq!(sub.stats().cap_lowered, 3);
-        for _ in 0..CALM_INTERVALS {
-            sub.spent(0.001, 33_333);
+        let calm = |sub: &mut Subframes, n: u32| {
+            for _ in 0..n {
+                sub.spent(0.001, 33_333);
+            }
+        };
+        calm(&mut sub, CALM_INTERVALS);
+        assert_eq!(sub.stats().cap, 2);
+        // Too slow at 2: back to 1, and the next raise waits twice as long.
+        for _ in 0..SETTLE_INTERVALS {
+            sub.spent(0.030, 33_333);
         }
+        assert_eq!(sub.stats().cap, 1);
+        calm(&mut sub, CALM_INTERVALS);
+        assert_eq!(sub.stats().cap, 1);
+        calm(&mut sub, CALM_INTERVALS);
         assert_eq!(sub.stats().cap, 2);
         // At cap 1 no flow runs (linear interpolation).
         let mut sub = Subframes::new(FlowPreset::Fast, 1.0, 1, W, H).unwrap();
