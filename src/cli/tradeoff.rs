@@ -49,6 +49,13 @@ pub struct TradeoffArgs {
     /// Also draw TF1 against speed with the Pareto front, as a PNG here.
     #[arg(long, value_name = "OUT.png")]
     pub(crate) plot: Option<PathBuf>,
+    /// Make the synthetic sequences at these frame rates, one group each (e.g. 15,30,60; the
+    /// ground truth stays at 1 kHz or more) instead of the dataset's own rates.
+    #[arg(long, value_delimiter = ',')]
+    pub(crate) fps: Vec<f64>,
+    /// Measure only the settings whose label contains this (e.g. "physics").
+    #[arg(long)]
+    pub(crate) only: Option<String>,
 }
 
 /// Runs `v2ce bench tradeoff`.
@@ -69,12 +76,20 @@ pub fn tradeoff(args: TradeoffArgs) -> Result<()> {
     let seed = args.synthetic_seed;
     if args.synthetic > 0 {
         let size = parse_size(&args.size)?;
-        groups.push(tradeoff::synthetic_scenes(
-            args.synthetic,
-            size,
-            seed,
-            &images,
-        )?);
+        let rates: Vec<Option<f64>> = if args.fps.is_empty() {
+            vec![None]
+        } else {
+            args.fps.iter().map(|&f| Some(f)).collect()
+        };
+        for fps in rates {
+            groups.push(tradeoff::synthetic_scenes(
+                args.synthetic,
+                size,
+                seed,
+                &images,
+                fps,
+            )?);
+        }
     }
     if args.still > 0 {
         let size = parse_size(&args.still_size)?;
@@ -86,7 +101,16 @@ pub fn tradeoff(args: TradeoffArgs) -> Result<()> {
             "nothing to score on: give --real, --synthetic N and/or --still N",
         ));
     }
-    let settings = tradeoff::settings(&args.model);
+    let mut settings = tradeoff::settings(&args.model);
+    if let Some(only) = &args.only {
+        settings.retain(|s| s.label.contains(only.as_str()));
+        if settings.is_empty() {
+            return Err(Error::invalid(
+                "--only",
+                format!("'{only}' is in no setting's label"),
+            ));
+        }
+    }
     let rows = tradeoff::run(&groups, &settings, |row| {
         if args.json {
             let text =

@@ -274,7 +274,9 @@ pub fn run(
     if sinks.is_empty() {
         return Err(Error::invalid("sinks", "no output configured"));
     }
-    if let Some(speed) = source.speed() {
+    // A live run that may drop frames lets Stage 1 trade accuracy for time first; under
+    // `block`, which loses nothing, it runs as offline and a slow machine lags instead.
+    if let (QueuePolicy::DropOldest, Some(speed)) = (options.policy, source.speed()) {
         stage1.pace(speed);
     }
     let size = source.first.size();

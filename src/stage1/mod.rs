@@ -272,10 +272,11 @@ pub trait Stage1: Send {
     /// What this tier is, for logs (`physics (preset davis346)`, `learned (model.onnx, L=16)`).
     fn describe(&self) -> String;
 
-    /// A live run: frames arrive at their own times divided by `speed`, and the tier must keep
-    /// up. A tier with a knob of cost may turn it down while its work per frame outgrows the
-    /// frames' pace, and say so (the physics tier lowers its sub-frame cap). Offline runs never
-    /// call this, so their output depends on their input alone.
+    /// A live run that drops frames it cannot take: frames arrive at their own times divided
+    /// by `speed`, and the tier must keep up. A tier with a knob of cost may turn it down while
+    /// its work per frame outgrows the frames' pace, and say so (the physics tier lowers its
+    /// sub-frame cap). Offline runs, and live ones that lose nothing (`block`), never call
+    /// this, so their output depends on their input alone.
     fn pace(&mut self, _speed: f64) {}
 }
 

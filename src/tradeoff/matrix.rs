@@ -9,20 +9,35 @@ use std::sync::Arc;
 use super::{Scene, Setting};
 use crate::dataset::{Image, Pace, Split, SyntheticConfig};
 use crate::error::Result;
+use crate::flow::FlowPreset;
 use crate::frame::SourceEncoding;
 use crate::interval::intervals_between;
-use crate::stage1::{Preset, Stage1Config, Tier};
+use crate::stage1::{Motion, PhysicsOverrides, Preset, Stage1Config, Tier};
 use crate::stage2::SamplerKind;
 
-/// Every setting the bench measures, in the order of its table: the three physics presets;
+/// Every setting the bench measures, in the order of its table: the `davis346` preset (flow,
+/// its default), with linear interpolation, with sub-frame caps 2 and 4, and with the
+/// `ultrafast` and `medium` flow presets; the other two physics presets;
 /// the built-in model at L = 16, 8 and 4 on 2 threads, on 1 thread, with LDATI, with output
 /// floors 0, 0.05 and 0.2, on whole frames, with crop margins 64 and 32; then each of `models`
 /// (ONNX) at L = 16 on 2 threads, named by its file stem.
 pub fn settings(models: &[PathBuf]) -> Vec<Setting> {
     let builtin = Path::new("");
     let small = |window, threads, sampler| learned("v2ce-small", builtin, window, threads, sampler);
-    let mut settings = vec![
-        physics(Preset::Davis346),
+    let mut settings = vec![physics(Preset::Davis346)];
+    // The motion model's trade: linear interpolation, lower caps, other flow presets.
+    settings.push(motion("linear", |p| p.motion = Some(Motion::Linear)));
+    for cap in [2u32, 4] {
+        settings.push(motion(&format!("flow cap {cap}"), |p| {
+            p.max_subframes = Some(cap)
+        }));
+    }
+    for preset in [FlowPreset::Ultrafast, FlowPreset::Medium] {
+        settings.push(motion(&format!("flow {}", preset.name()), |p| {
+            p.flow_preset = Some(preset)
+        }));
+    }
+    settings.extend([
         physics(Preset::Dvxplorer),
         physics(Preset::Ideal),
         small(16, 2, SamplerKind::Moment),
@@ -30,7 +45,7 @@ pub fn settings(models: &[PathBuf]) -> Vec<Setting> {
         small(4, 2, SamplerKind::Moment),
         small(16, 1, SamplerKind::Moment),
         small(16, 2, SamplerKind::Ldati),
-    ];
+    ]);
     let default = || small(16, 2, SamplerKind::Moment);
     for floor in [0.0f32, 0.05, 0.2] {
         let mut s = default();
@@ -70,6 +85,14 @@ fn physics(preset: Preset) -> Setting {
         },
         sampler: SamplerKind::Moment,
     }
+}
+
+/// The `davis346` preset with its motion settings changed by `set`, labelled `label`.
+fn motion(label: &str, set: impl FnOnce(&mut PhysicsOverrides)) -> Setting {
+    let mut s = physics(Preset::Davis346);
+    set(&mut s.stage1.physics);
+    s.label = format!("{} {label}", s.label);
+    s
 }
 
 /// The learned tier with `model` (empty: the built-in one), labelled `label` and the rest.
@@ -127,18 +150,26 @@ impl Scene {
 }
 
 /// Sequences `0..count` of the synthetic dataset at `size` from `seed` (as `v2ce dataset
-/// synthetic` makes them, with `images` as textures), each scored on all its intervals.
+/// synthetic` makes them, with `images` as textures), each scored on all its intervals; at
+/// `fps` frames per second if given, else at the dataset's own rates.
 pub fn synthetic_scenes(
     count: usize,
     size: (u16, u16),
     seed: u64,
     images: &[Arc<Image>],
+    fps: Option<f64>,
 ) -> Result<Vec<Scene>> {
-    let cfg = SyntheticConfig {
+    let mut cfg = SyntheticConfig {
         size,
         ..Default::default()
     };
-    scenes(count, &cfg, seed, images, format!("synthetic seed {seed}"))
+    let mut name = format!("synthetic seed {seed}");
+    if let Some(fps) = fps {
+        cfg.fps = (fps, fps);
+        name = format!("{name} at {fps} fps");
+    }
+    cfg.validate()?;
+    scenes(count, &cfg, seed, images, name)
 }
 
 /// As [`synthetic_scenes`], from a still camera: steady light, clean frames, only objects
