@@ -1,4 +1,6 @@
-//! Stage 1 (physics tier) speed, single thread, side by side with eventcv on the same frames.
+//! Stage 1 (physics tier) speed, single thread, side by side with eventcv on the same frames:
+//! the `davis346` preset with linear interpolation and with its default motion model (sub-frames
+//! along the optical flow; OpenCV held to one thread by `OPENCV_FOR_THREADS_NUM=1`).
 //!
 //! Workloads: the davis346 APS frames (a real moving scene, 59 frames at 346 x 260) when
 //! ../shared/data is present, else a synthetic moving edge; the same frames upscaled to 640 x 480
@@ -14,7 +16,7 @@ use std::process::Command;
 use std::time::Instant;
 
 use v2ce::frame::{Frame, FrameSource};
-use v2ce::stage1::{PhysicsSim, Preset};
+use v2ce::stage1::{Motion, PhysicsConfig, PhysicsSim, Preset};
 
 /// 8-bit frames and their times.
 struct Workload {
@@ -102,8 +104,8 @@ fn still(src: &Workload) -> Workload {
     }
 }
 
-/// Our model's frames per second (median of 7 passes) and events per pass.
-fn ours(w: &Workload) -> (f64, usize) {
+/// Our model's frames per second (median of 7 passes) and events per pass, with `motion`.
+fn ours(w: &Workload, motion: Motion) -> (f64, usize) {
     let frames: Vec<Frame> = w
         .times
         .iter()
@@ -120,8 +122,11 @@ fn ours(w: &Workload) -> (f64, usize) {
     let mut count = 0;
     let mut out = Vec::new();
     for _ in 0..7 {
-        let mut sim =
-            PhysicsSim::new(Preset::Davis346.config(), w.width, w.height, 0).expect("sim");
+        let cfg = PhysicsConfig {
+            motion,
+            ..Preset::Davis346.config()
+        };
+        let mut sim = PhysicsSim::new(cfg, w.width, w.height, 0).expect("sim");
         count = 0;
         let start = Instant::now();
         for f in &frames {
@@ -181,20 +186,27 @@ fn main() {
     if !std::env::args().any(|a| a == "--bench") {
         return;
     }
+    // One thread for OpenCV's flow too (read when OpenCV starts its pool).
+    if std::env::var_os("OPENCV_FOR_THREADS_NUM").is_none() {
+        std::env::set_var("OPENCV_FOR_THREADS_NUM", "1");
+    }
     let base = load();
     let big = upscale(&base, 640, 480);
     let loads = [still(&base), still(&big), base, big];
-    println!("| workload | v2ce frames/s | v2ce events | eventcv frames/s (noise off) | eventcv (noise on) | ratio (noise off) |");
-    println!("|---|---:|---:|---:|---:|---:|");
+    println!("| workload | v2ce linear frames/s | v2ce flow frames/s | flow / linear | v2ce flow events | eventcv frames/s (noise off) | eventcv (noise on) | flow / eventcv (noise off) |");
+    println!("|---|---:|---:|---:|---:|---:|---:|---:|");
     for w in &loads {
-        let (fps, events) = ours(w);
+        let (linear, _) = ours(w, Motion::Linear);
+        let (fps, events) = ours(w, Motion::Flow);
         let off = eventcv(w, false);
         let on = eventcv(w, true);
         let show = |v: Option<f64>| v.map_or("n/a".to_string(), |v| format!("{v:.1}"));
         println!(
-            "| {} | {:.0} | {} | {} | {} | {} |",
+            "| {} | {:.0} | {:.0} | {:.2} | {} | {} | {} | {} |",
             w.name,
+            linear,
             fps,
+            fps / linear,
             events,
             show(off),
             show(on),

@@ -31,6 +31,15 @@ use crate::stage1::{PhysicsConfig, PhysicsSim, Preset};
 /// Log-intensity change below which a pixel counts as static over an interval.
 const STATIC_LOG: f64 = 0.02;
 
+/// A pixel is flat where no pixel within `FLAT_RADIUS` differs from it by more than
+/// `FLAT_LOG` in log intensity, in both frames of an interval. Flicker is judged on flat still
+/// pixels only: a lamp fires them like any other, while a camera shaking at the mains
+/// frequency (an engine, a fan; by up to a pixel, which frames do not show) fires only at
+/// edges, each edge at the phase of its own direction, and a scene with one strong edge would
+/// lock to it.
+const FLAT_LOG: f64 = 0.05;
+const FLAT_RADIUS: usize = 1;
+
 /// Mismatch values tried.
 const SIGMAS: [f64; 3] = [0.0, 0.03, 0.06];
 
@@ -188,10 +197,12 @@ pub fn calibrate(rec: &Recording, base: &PhysicsConfig, seed: u64) -> Result<Cal
     }
     let intervals = intervals_between(rec.frames)?;
     let still = still_pixels(rec.frames);
+    let flat = flat_pixels(rec.frames, rec.size.0 as usize, &still);
     let mut fitter = Fitter {
         rec,
         intervals: &intervals,
         still: &still,
+        flat: &flat,
         seed,
         runs: 0,
     };
@@ -261,6 +272,52 @@ fn still_pixels(frames: &[Frame]) -> Vec<Vec<bool>> {
         .collect()
 }
 
+/// Per frame interval, the still pixels (`still`) that are also flat (see `FLAT_LOG`) in both
+/// of its frames (`width` pixels a row).
+fn flat_pixels(frames: &[Frame], width: usize, still: &[Vec<bool>]) -> Vec<Vec<bool>> {
+    let log = |v: u16| ((v as f64 / FULL_SCALE as f64) + 1e-3).ln();
+    let flat = |f: &Frame| -> Vec<bool> {
+        let l: Vec<f64> = f.luma.iter().map(|&v| log(v)).collect();
+        let height = l.len() / width.max(1);
+        let r = FLAT_RADIUS;
+        (0..l.len())
+            .map(|i| {
+                let (x, y) = (i % width, i / width);
+                let ys = y.saturating_sub(r)..(y + r + 1).min(height);
+                ys.flat_map(|yy| {
+                    (x.saturating_sub(r)..(x + r + 1).min(width)).map(move |xx| (xx, yy))
+                })
+                .all(|(xx, yy)| (l[yy * width + xx] - l[i]).abs() < FLAT_LOG)
+            })
+            .collect()
+    };
+    let each: Vec<Vec<bool>> = frames.iter().map(flat).collect();
+    still
+        .iter()
+        .enumerate()
+        .map(|(k, s)| {
+            s.iter()
+                .zip(each[k].iter().zip(&each[k + 1]))
+                .map(|(&s, (&a, &b))| s && a && b)
+                .collect()
+        })
+        .collect()
+}
+
+/// The frequency in the flicker bands at which `times` (us) lock best, and the lock there.
+fn strongest_lock(times: &[i64]) -> (f64, f64) {
+    // A sample keeps the search quick on busy recordings.
+    let stride = times.len().div_ceil(20_000).max(1);
+    let sample: Vec<i64> = times.iter().step_by(stride).copied().collect();
+    let steps = (FLICKER_SPAN_HZ / FLICKER_STEP_HZ).round() as i32;
+    FLICKER_BANDS
+        .iter()
+        .flat_map(|&f| (-steps..=steps).map(move |k| f + k as f64 * FLICKER_STEP_HZ))
+        .map(|hz| (hz, phase_lock(&sample, hz)))
+        .max_by(|a, b| a.1.total_cmp(&b.1))
+        .unwrap_or((0.0, 0.0))
+}
+
 /// The length of the mean phasor of `times` (us) at `hz`: 1 when all fall at one phase of the
 /// cycle, about `1 / sqrt(n)` for times unrelated to it.
 pub fn phase_lock(times: &[i64], hz: f64) -> f64 {
@@ -281,6 +338,7 @@ struct Fitter<'a> {
     rec: &'a Recording<'a>,
     intervals: &'a [Interval],
     still: &'a [Vec<bool>],
+    flat: &'a [Vec<bool>],
     seed: u64,
     runs: usize,
 }
@@ -358,26 +416,36 @@ impl Fitter<'_> {
         (on, off, times)
     }
 
-    /// The mains flicker in the real events of `range`, if their ON events at still pixels
-    /// lock to one (see `FLICKER_LOCK`).
+    /// The mains flicker in the real events of `range`, if their ON events at flat still
+    /// pixels lock to one (see `FLICKER_LOCK`, `FLAT_LOG`); its frequency and lock are those
+    /// of the ON events at all still pixels.
     fn flicker(&self, range: &std::ops::Range<usize>) -> Option<Flicker> {
-        let (_, _, times) = self.still_events(self.rec.events, range);
-        if times.len() < FLICKER_MIN_EVENTS {
+        let w = self.rec.size.0 as usize;
+        let on_at = |mask: &[Vec<bool>]| -> Vec<i64> {
+            let mut times = Vec::new();
+            for k in range.clone() {
+                let iv = self.intervals[k];
+                times.extend(
+                    time_slice(self.rec.events, iv.start(), iv.end())
+                        .iter()
+                        .filter(|e| e.on && mask[k][e.y as usize * w + e.x as usize])
+                        .map(|e| e.t),
+                );
+            }
+            times
+        };
+        // Whether there is a lamp, from the flat pixels; its frequency, once there is, from
+        // all still pixels (more events, a sharper peak).
+        let flat = on_at(self.flat);
+        if flat.len() < FLICKER_MIN_EVENTS || strongest_lock(&flat).1 < FLICKER_LOCK {
             return None;
         }
-        // A sample keeps the search quick on busy recordings.
-        let stride = times.len().div_ceil(20_000);
-        let sample: Vec<i64> = times.iter().step_by(stride).copied().collect();
-        let steps = (FLICKER_SPAN_HZ / FLICKER_STEP_HZ).round() as i32;
-        let best = FLICKER_BANDS
-            .iter()
-            .flat_map(|&f| (-steps..=steps).map(move |k| f + k as f64 * FLICKER_STEP_HZ))
-            .map(|hz| (hz, phase_lock(&sample, hz)))
-            .max_by(|a, b| a.1.total_cmp(&b.1))?;
-        (best.1 >= FLICKER_LOCK).then_some(Flicker {
-            hz: best.0,
-            lock: best.1,
-            events: times.len(),
+        let still = on_at(self.still);
+        let (hz, lock) = strongest_lock(&still);
+        Some(Flicker {
+            hz,
+            lock,
+            events: still.len(),
         })
     }
 
@@ -747,19 +815,73 @@ mod tests {
         }
         // Steady light: none found.
         let steady = simulate(&frames, (48, 32), &Preset::Davis346.config(), 11).unwrap();
-        let still = still_pixels(&frames);
+        assert!(flicker_in(&frames, &steady, (48, 32)).is_none());
+    }
+
+    /// What `Fitter::flicker` finds in `events` over all of `frames`' intervals.
+    fn flicker_in(frames: &[Frame], events: &[Event], size: (u16, u16)) -> Option<Flicker> {
+        let still = still_pixels(frames);
+        let flat = flat_pixels(frames, size.0 as usize, &still);
         let fitter = Fitter {
             rec: &Recording {
-                frames: &frames,
-                events: &steady,
-                size: (48, 32),
+                frames,
+                events,
+                size,
             },
-            intervals: &intervals_between(&frames).unwrap(),
+            intervals: &intervals_between(frames).unwrap(),
             still: &still,
+            flat: &flat,
             seed: 0,
             runs: 0,
         };
-        assert!(fitter.flicker(&(0..frames.len() - 1)).is_none());
+        fitter.flicker(&(0..frames.len() - 1))
+    }
+
+    /// A camera shaking at 100 Hz (an engine) before a scene with one strong edge, under
+    /// steady light: the events near the edge lock to the shake's phase, but no lamp is
+    /// claimed, since the flat parts of the scene stay silent. The same scene under a 100 Hz
+    /// lamp still shows it.
+    #[test]
+    fn a_shaking_camera_is_not_a_flickering_lamp() {
+        let (w, h) = (64u16, 32u16);
+        // Bright left of x = 30 + 0.8 sin(2 pi 100 t), dark right, a soft texture on each;
+        // frames at 25 fps see the shake at one phase, so not at all.
+        let scene = |t: i64, x: u16, y: u16| {
+            let shake = 0.8 * (std::f64::consts::TAU * 100.0 * t as f64 * 1e-6).sin();
+            let edge = 30.0 + shake;
+            let cover = (edge - x as f64).clamp(0.0, 1.0);
+            let tex = 1.0 + 0.02 * ((y as f64) * 0.4).sin();
+            (0.1 + 0.6 * cover) * tex
+        };
+        let truth = Preset::Davis346.config().noiseless();
+        let shaking = |fps: f64, frames: usize| {
+            let mut src = SceneSource::new("shake", w, h, fps, frames, Box::new(scene));
+            std::iter::from_fn(|| src.next_frame().unwrap()).collect::<Vec<Frame>>()
+        };
+        // The sensor sees the shake (frames at 4 kHz, linear between them), the fit 25 fps.
+        let linear = PhysicsConfig {
+            motion: crate::stage1::Motion::Linear,
+            ..truth.clone()
+        };
+        let real = simulate(&shaking(4000.0, 2401), (w, h), &linear, 1).unwrap();
+        let frames = shaking(25.0, 16);
+        let edge_on: Vec<i64> = real.iter().filter(|e| e.on).map(|e| e.t).collect();
+        assert!(edge_on.len() > 1000, "{}", edge_on.len());
+        assert!(
+            phase_lock(&edge_on, 100.0) > FLICKER_LOCK,
+            "the shake locks the edge"
+        );
+        assert!(flicker_in(&frames, &real, (w, h)).is_none());
+        // Under a lamp, the flat parts fire too: found.
+        let lamp = PhysicsConfig {
+            flicker_hz: 100.0,
+            flicker_depth: 0.3,
+            ..linear
+        };
+        let lit = simulate(&shaking(4000.0, 2401), (w, h), &lamp, 1).unwrap();
+        let found = flicker_in(&frames, &lit, (w, h)).expect("the lamp is not found");
+        // 0.6 s of events: the peak is about 1.7 Hz wide.
+        assert!((found.hz - 100.0).abs() <= 0.1, "{found:?}");
     }
 
     #[test]

@@ -271,6 +271,18 @@ fn convert_frames_to_events_in_every_format() {
     }
     assert!(counts[0] > 100, "{counts:?}");
     assert!(counts.iter().all(|&c| c == counts[0]), "{counts:?}");
+    // Both motion models convert the small video (16 rows: the flow's smallest frame).
+    for motion in ["linear", "flow"] {
+        let o = v2ce()
+            .current_dir(&dir)
+            .args([
+                "convert", "in.y4m", "-o", "m.csv", "--force", "--preset", "ideal",
+            ])
+            .args(["--motion", motion])
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
     // Bad input: a missing file, a bad preset, a folder without times.
     std::fs::create_dir_all(dir.join("empty")).unwrap();
     for (args, needle) in [
@@ -280,6 +292,27 @@ fn convert_frames_to_events_in_every_format() {
             "preset",
         ),
         (vec!["convert", "empty", "-o", "x.csv"], "fps"),
+        // The motion model's settings, and a calibration too short to fit.
+        (
+            vec!["convert", "in.y4m", "-o", "x.csv", "--max-subframes", "0"],
+            "max_subframes",
+        ),
+        (
+            vec!["convert", "in.y4m", "-o", "x.csv", "--max-step-px", "NaN"],
+            "max_step_px",
+        ),
+        (
+            vec![
+                "calibrate",
+                "--real",
+                "in.y4m",
+                "-o",
+                "p.toml",
+                "--max-frames",
+                "3",
+            ],
+            "--max-frames",
+        ),
     ] {
         let o = v2ce().current_dir(&dir).args(&args).output().unwrap();
         let err = String::from_utf8_lossy(&o.stderr);

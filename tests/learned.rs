@@ -904,7 +904,8 @@ fn the_tradeoff_bench_measures_every_setting() {
         .lines()
         .map(|l| serde_json::from_str(l).unwrap())
         .collect();
-    assert_eq!(rows.len(), 28, "{rows:?}");
+    // 19 settings (8 physics, 11 learned) on 2 scene groups.
+    assert_eq!(rows.len(), 38, "{rows:?}");
     // The plot: a panel per scene, points of both tiers' colours.
     let png = image::open(&plot).unwrap().to_rgb8();
     assert_eq!(png.dimensions(), (1440, 560));
@@ -931,6 +932,15 @@ fn the_tradeoff_bench_measures_every_setting() {
         .unwrap();
     // The ground truth is the same pixel model at 1 kHz: it scores well, not perfectly.
     assert!(physics["tf1"].as_f64().unwrap() > 0.3, "{physics}");
+    // Seeing the motion between frames (the default) scores above interpolating linearly.
+    let linear = rows
+        .iter()
+        .find(|r| r["setting"] == "physics davis346 linear" && r["scene"] == physics["scene"])
+        .unwrap();
+    assert!(
+        physics["tf1"].as_f64().unwrap() > linear["tf1"].as_f64().unwrap(),
+        "{physics} {linear}"
+    );
     // On the still camera, crops with a narrower margin run on less of the frame, and the
     // whole-frame setting on all of what it runs.
     let still = |setting: &str| {

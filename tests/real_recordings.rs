@@ -324,3 +324,61 @@ fn physics_tier_on_davis346_beats_the_noiseless_sensor() {
     );
     assert!(default.tf1 >= 0.40, "{}", default.tf1);
 }
+
+/// The default physics tier sees the motion between the davis346 clip's frames (sub-frames
+/// along the optical flow): TF1 at least 0.66 at a count within 0.8-1.25 of the real one
+/// (measured: 0.673 at 1.075), where interpolating each pixel linearly gives less than 0.64
+/// (measured: 0.614).
+#[test]
+fn the_default_physics_tier_sees_motion_on_davis346() {
+    let d = data_or_skip!("the_default_physics_tier_sees_motion_on_davis346");
+    let rec = d.join("davis346/davis346.aedat4");
+    let out = std::env::temp_dir().join(format!("v2ce-motion-{}", std::process::id()));
+    std::fs::create_dir_all(&out).unwrap();
+    // `extra`: flags after the defaults.
+    let score = |name: &str, extra: &[&str]| {
+        let sim = out.join(format!("{name}.csv"));
+        let mut convert: Vec<std::ffi::OsString> = vec![
+            "convert".into(),
+            rec.clone().into_os_string(),
+            "-o".into(),
+            sim.clone().into_os_string(),
+        ];
+        convert.extend(extra.iter().map(|a| a.into()));
+        for args in [
+            convert,
+            vec![
+                "eval".into(),
+                "stage1".into(),
+                "--real".into(),
+                rec.clone().into_os_string(),
+                "--sim".into(),
+                sim.clone().into_os_string(),
+                "--json".into(),
+            ],
+        ] {
+            let o = std::process::Command::new(env!("CARGO_BIN_EXE_v2ce"))
+                .args(&args)
+                .output()
+                .unwrap();
+            assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+            if args[0] == "eval" {
+                let s: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+                return (
+                    s["tf1"].as_f64().unwrap(),
+                    s["count_ratio"].as_f64().unwrap(),
+                );
+            }
+        }
+        unreachable!()
+    };
+    let (flow, ratio) = score("default", &[]);
+    let (linear, _) = score("linear", &["--motion", "linear"]);
+    eprintln!("davis346: TF1 {flow:.3} (count ratio {ratio:.3}) with flow, {linear:.3} linear");
+    assert!(
+        flow >= 0.66 && (0.8..=1.25).contains(&ratio),
+        "{flow} {ratio}"
+    );
+    assert!(linear < 0.64, "{linear}");
+    std::fs::remove_dir_all(&out).unwrap();
+}

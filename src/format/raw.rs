@@ -195,7 +195,10 @@ pub fn time_offset_for(evt: Evt, first_t: i64) -> i64 {
     first_t.div_euclid(period) * period
 }
 
-/// Writes a header that both our decoder and other readers understand.
+/// Writes a header that both our decoder and other readers understand. Its length is a
+/// multiple of 4 bytes (a `% v2ce` line pads it), so the words after it are aligned in the
+/// file: a writer killed mid-write leaves a file cut at a page boundary (the kernel stops a
+/// write between pages on a fatal signal), which is then a whole number of words.
 pub fn write_header(
     w: &mut impl Write,
     evt: Evt,
@@ -208,14 +211,20 @@ pub fn write_header(
         Evt::Evt2 => "EVT2",
         Evt::Evt3 => "EVT3",
     };
-    write!(
-        w,
+    let mut text = format!(
         "% evt {v}\n% format {tag};height={height};width={width}\n% geometry {width}x{height}\n"
-    )?;
+    );
     if time_offset != 0 {
-        writeln!(w, "% v2ce_time_offset_us {time_offset}")?;
+        text.push_str(&format!("% v2ce_time_offset_us {time_offset}\n"));
     }
-    w.write_all(b"% end\n")
+    const PAD: &str = "% v2ce";
+    const END: &str = "% end\n";
+    let spaces = (4 - (text.len() + PAD.len() + 1 + END.len()) % 4) % 4;
+    text.push_str(PAD);
+    text.push_str(&" ".repeat(spaces));
+    text.push('\n');
+    text.push_str(END);
+    w.write_all(text.as_bytes())
 }
 
 /// The header an encoder writes just before its first event, when the time offset is known.
@@ -296,6 +305,32 @@ mod tests {
             (h.evt, h.size, h.time_offset),
             (Some(Evt::Evt2), Some((346, 260)), 5 << 34)
         );
+    }
+
+    /// Whatever the size and offset, the header is a whole number of 4-byte words and reads
+    /// back: the events after it are aligned in the file.
+    #[test]
+    fn headers_we_write_end_on_a_word_boundary() {
+        for evt in [Evt::Evt2, Evt::Evt3] {
+            for (w, h) in [
+                (1u16, 1u16),
+                (346, 260),
+                (640, 480),
+                (1280, 720),
+                (65535, 9),
+            ] {
+                for offset in [0i64, 1 << 34, 123 << 34] {
+                    let mut out = Vec::new();
+                    write_header(&mut out, evt, w, h, offset).unwrap();
+                    assert_eq!(out.len() % 4, 0, "{evt:?} {w}x{h} {offset}");
+                    let back = parse(&out);
+                    assert_eq!(
+                        (back.evt, back.size, back.time_offset),
+                        (Some(evt), Some((w, h)), offset)
+                    );
+                }
+            }
+        }
     }
 
     #[test]
