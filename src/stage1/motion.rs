@@ -249,6 +249,9 @@ impl Subframes {
         if self.cap <= 1 || span_us < 2 || w < MIN_SIDE as usize || h < MIN_SIDE as usize {
             return 1;
         }
+        if scale0 == 1.0 && f0 == f1 {
+            return 1;
+        }
         gray(f0, scale0, &mut self.gray0);
         gray(f1, 1.0, &mut self.gray1);
         let changed = self
