@@ -91,6 +91,14 @@ const MAX_CALM_INTERVALS: u32 = 30 * 64;
 /// Intervals the smoothed time needs after a change of cap before it may lower the cap.
 const SETTLE_INTERVALS: u32 = 3;
 
+/// Memory the motion model takes per pixel beyond the pixel model's, with `max_subframes`:
+/// the sub-frames (2 bytes each), the gray frames (2), both flows (16) and their masks (2), the
+/// flow lengths (8), and OpenCV's pyramids and buffers (48, an estimate from DIS's per-level
+/// images at half resolution and below).
+pub fn bytes_per_pixel(max_subframes: u32) -> u64 {
+    2 * u64::from(max_subframes.max(1) - 1) + 2 + 16 + 2 + 8 + 48
+}
+
 /// What the motion model did, for the physics tier's record.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
 pub struct MotionStats {

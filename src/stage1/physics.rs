@@ -631,9 +631,14 @@ impl PhysicsSim {
         cfg.validate()?;
         crate::limits::frame_size("frame size", width.into(), height.into())?;
         let n = width as usize * height as usize;
+        let per_pixel = BYTES_PER_PIXEL
+            + match cfg.motion {
+                Motion::Linear => 0,
+                Motion::Flow => super::motion::bytes_per_pixel(cfg.max_subframes),
+            };
         crate::limits::memory(
             "frame size",
-            n as u64 * BYTES_PER_PIXEL,
+            n as u64 * per_pixel,
             &format!("{width} x {height} in the pixel model"),
         )?;
         let log_lut = log_table(&cfg, 1.0);
