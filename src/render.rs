@@ -61,6 +61,10 @@ pub struct RenderReport {
     pub size: (u16, u16),
 }
 
+/// Memory a render takes per pixel: the canvas (16), the RGB frame (3), its RGBA copy for GIF
+/// (4) and the encoder's buffers (about as much again).
+const BYTES_PER_PIXEL: u64 = 48;
+
 /// One frame's state: the last polarity and time at each pixel.
 struct Canvas {
     width: usize,
@@ -134,6 +138,13 @@ pub fn render(input: &Path, output: &Path, options: &RenderOptions) -> Result<Re
             format!("{} has no sensor size: give --size WxH", input.display()),
         )
     })?;
+    // The size may come from a file's header: bounded before the canvas is allocated.
+    crate::limits::frame_size("size", w.into(), h.into())?;
+    crate::limits::memory(
+        "size",
+        w as u64 * h as u64 * BYTES_PER_PIXEL,
+        &format!("rendering {w} x {h}"),
+    )?;
     let ext = output
         .extension()
         .and_then(|e| e.to_str())

@@ -36,6 +36,23 @@ fn renders_show_events_where_they_fall() {
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     };
     run("all.png", &[]);
+    // A file whose header claims a sensor past the frame limit is a clear error before the
+    // canvas is allocated, not an abort (it was a 68 GB allocation).
+    let huge = dir.join("huge.raw");
+    std::fs::write(
+        &huge,
+        "% evt 3.0\n% format EVT3;height=65535;width=65535\n% end\n",
+    )
+    .unwrap();
+    let o = v2ce()
+        .arg("render")
+        .arg(&huge)
+        .arg("-o")
+        .arg(dir.join("huge.png"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("8192"), "{err}");
     let png = image::open(dir.join("all.png")).unwrap().to_rgb8();
     assert_eq!(png.dimensions(), (16, 8));
     assert_eq!(png.get_pixel(3, 4).0, ON_COLOUR);
