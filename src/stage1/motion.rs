@@ -46,21 +46,11 @@ use crate::flow::{DenseFlow, FlowPreset};
 pub enum Motion {
     /// Each pixel's light interpolated linearly (in log) between the frames: exact for a
     /// still camera on a still scene, a fade for anything that moves.
-    #[default]
     Linear,
     /// Sub-frames warped along the optical flow, as many as the motion needs (see the
-    /// module docs).
+    /// module docs). Every preset's choice.
+    #[default]
     Flow,
-}
-
-impl Motion {
-    /// The name as configs and flags spell it.
-    pub fn name(self) -> &'static str {
-        match self {
-            Motion::Linear => "linear",
-            Motion::Flow => "flow",
-        }
-    }
 }
 
 /// A pixel counts as changed when its 8-bit gray value moved by this many levels: about the
