@@ -281,14 +281,19 @@ fn metrics_match_the_report_and_readiness_follows_the_source() {
     assert_eq!(info["labels"]["tier"], "physics");
 }
 
-/// The scrape without the lines that change by themselves (uptime, CPU, memory, readiness),
-/// so two scrapes compare equal when nothing else moved.
+/// The scrape without the lines that change by themselves (uptime, CPU, memory, readiness,
+/// the listener's own connections), so two scrapes compare equal when nothing else moved.
 fn stable(text: &str) -> String {
     text.lines()
         .filter(|l| {
-            !["v2ce_uptime_seconds", "process_", "v2ce_ready"]
-                .iter()
-                .any(|p| l.starts_with(p))
+            ![
+                "v2ce_uptime_seconds",
+                "process_",
+                "v2ce_ready",
+                "v2ce_http_",
+            ]
+            .iter()
+            .any(|p| l.starts_with(p))
         })
         .collect::<Vec<_>>()
         .join("\n")
@@ -424,4 +429,223 @@ fn the_preview_page_shows_the_moving_fixture_in_a_browser() {
     assert!(frames[3] > frames[0], "{frames:?}");
     assert_ne!(messages[0]["png"], messages[3]["png"]);
     assert_eq!(messages[0]["width"], 640);
+}
+
+/// The process's thread count and resident memory (KiB), from /proc.
+fn threads_and_rss(pid: u32) -> (u64, u64) {
+    let text = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
+    let field = |name: &str| {
+        text.lines()
+            .find_map(|l| l.strip_prefix(name))
+            .and_then(|v| v.split_whitespace().next())
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(0)
+    };
+    (field("Threads:"), field("VmRSS:"))
+}
+
+/// Sends `request` raw and reads what comes back within `limit` (until the server closes).
+fn raw(address: &str, request: &[u8], limit: Duration) -> String {
+    let mut s = std::net::TcpStream::connect(address).unwrap();
+    s.set_read_timeout(Some(limit)).unwrap();
+    let _ = s.write_all(request);
+    let mut got = Vec::new();
+    let _ = s.read_to_end(&mut got);
+    String::from_utf8_lossy(&got).into_owned()
+}
+
+fn code(response: &str) -> u16 {
+    response
+        .split_whitespace()
+        .nth(1)
+        .and_then(|c| c.parse().ok())
+        .unwrap_or(0)
+}
+
+/// The listener attacked on loopback while the daemon streams: huge and never-sent bodies,
+/// other methods, an endless header line, pipelined requests never read, a slowloris of
+/// half-open connections, preview streams past the cap and one never read. Each gets its
+/// refusal or a timeout; `/healthz` stays answered; the process grows no threads and no
+/// memory; and one SIGTERM, with the attackers still connected, stops it promptly with its
+/// closing report.
+#[test]
+fn the_listener_holds_under_attack_and_never_holds_the_daemon() {
+    let dir = common::temp_dir("http-attacks");
+    let daemon = Daemon::start(
+        &[
+            "--source",
+            "fixture",
+            "--udp",
+            "127.0.0.1:9",
+            "--duration",
+            "120",
+            "--json",
+        ],
+        &dir,
+    );
+    let a = daemon.address.clone();
+    let pid = daemon.child.id();
+    assert_eq!(daemon.get("/healthz").0, 200);
+    let (threads0, rss0) = threads_and_rss(pid);
+    let second = Duration::from_secs(1);
+
+    // A body announced larger than memory: refused at once, nothing read or allocated.
+    let r = raw(
+        &a,
+        b"GET /healthz HTTP/1.1\r\nHost: x\r\nContent-Length: 99999999999999\r\n\r\n",
+        second * 5,
+    );
+    assert_eq!(code(&r), 413, "{r}");
+    // A body announced and never sent: refused at once, not waited for.
+    let started = Instant::now();
+    let r = raw(
+        &a,
+        b"POST /metrics HTTP/1.1\r\nHost: x\r\nContent-Length: 2000\r\n\r\n",
+        second * 5,
+    );
+    assert_eq!(code(&r), 405, "{r}");
+    assert!(r.contains("allow: GET, HEAD"), "{r}");
+    let r = raw(
+        &a,
+        b"GET /readyz HTTP/1.1\r\nHost: x\r\nTransfer-Encoding: chunked\r\n\r\n",
+        second * 5,
+    );
+    assert_eq!(code(&r), 413, "{r}");
+    assert!(started.elapsed() < second * 3, "{:?}", started.elapsed());
+    for method in ["PUT", "DELETE", "OPTIONS", "PATCH"] {
+        let r = raw(
+            &a,
+            format!("{method} / HTTP/1.1\r\nHost: x\r\n\r\n").as_bytes(),
+            second * 5,
+        );
+        assert_eq!(code(&r), 405, "{method}: {r}");
+    }
+    // HEAD: the headers alone.
+    let r = raw(&a, b"HEAD /metrics HTTP/1.1\r\nHost: x\r\n\r\n", second * 5);
+    assert_eq!(code(&r), 200, "{r}");
+    assert!(!r.contains("v2ce_frames_total"), "{r}");
+    // An endless header line and too many headers: 431 and closed, memory not following.
+    {
+        let mut s = std::net::TcpStream::connect(&a).unwrap();
+        s.set_write_timeout(Some(second * 5)).unwrap();
+        s.set_read_timeout(Some(second * 5)).unwrap();
+        let _ = s.write_all(b"GET /healthz HTTP/1.1\r\nX-Long: ");
+        let chunk = vec![b'a'; 64 * 1024];
+        let mut sent = 0usize;
+        while sent < 64 << 20 && s.write_all(&chunk).is_ok() {
+            sent += chunk.len();
+        }
+        assert!(
+            sent < 64 << 20,
+            "the listener read 64 MiB of one header line"
+        );
+        let mut got = Vec::new();
+        let _ = s.read_to_end(&mut got);
+    }
+    let many: String = (0..200).map(|i| format!("X-{i}: {i}\r\n")).collect();
+    let r = raw(
+        &a,
+        format!("GET /healthz HTTP/1.1\r\nHost: x\r\n{many}\r\n").as_bytes(),
+        second * 5,
+    );
+    assert_eq!(code(&r), 431, "{r}");
+
+    // Pipelined requests whose responses are never read, on 16 connections.
+    let mut held: Vec<std::net::TcpStream> = Vec::new();
+    let burst: String = (0..200)
+        .map(|_| "GET /metrics HTTP/1.1\r\nHost: x\r\n\r\n")
+        .collect();
+    for _ in 0..16 {
+        let mut s = std::net::TcpStream::connect(&a).unwrap();
+        s.set_write_timeout(Some(second)).unwrap();
+        let _ = s.write_all(burst.as_bytes());
+        held.push(s);
+    }
+    // Preview streams: up to the cap, then 503; one is never read.
+    let mut streams = Vec::new();
+    for _ in 0..8 {
+        let mut s = std::net::TcpStream::connect(&a).unwrap();
+        s.write_all(b"GET /events HTTP/1.1\r\nHost: x\r\n\r\n")
+            .unwrap();
+        streams.push(s);
+    }
+    std::thread::sleep(Duration::from_millis(300));
+    assert_eq!(daemon.get("/events").0, 503);
+    // A slowloris: 300 connections, each a byte of a request head and then nothing.
+    for _ in 0..300 {
+        match std::net::TcpStream::connect(&a) {
+            Ok(mut s) => {
+                let _ = s.write_all(b"G");
+                held.push(s);
+            }
+            Err(_) => break,
+        }
+    }
+    // The process neither spawned a thread per connection nor grew with them.
+    let (threads1, rss1) = threads_and_rss(pid);
+    assert!(
+        threads1 <= threads0 + 1,
+        "threads {threads0} -> {threads1} under attack"
+    );
+    assert!(
+        rss1 < rss0 + 64 * 1024,
+        "resident memory {rss0} KiB -> {rss1} KiB under attack"
+    );
+    // Past the head timeout the half-open connections are gone, the never-read pipelines and
+    // streams past the exchange and stall timeouts: the listener answers again.
+    let started = Instant::now();
+    wait_for(Duration::from_secs(30), "/healthz 200 under attack", || {
+        code(&raw(&a, b"GET /healthz HTTP/1.0\r\n\r\n", second * 2)) == 200
+    });
+    let waited = started.elapsed();
+    let text = daemon.get("/metrics").1;
+    let timed_out = sample(&text, "v2ce_http_connections_total{result=\"timed_out\"}").unwrap();
+    assert!(timed_out >= 1.0, "{text}");
+    let rejected = sample(&text, "v2ce_http_rejected_requests_total").unwrap();
+    assert!(rejected >= 7.0, "{rejected}");
+    eprintln!(
+        "listener answered again {:.1} s after the slowloris; {timed_out} connections timed out",
+        waited.as_secs_f64()
+    );
+    // The daemon kept streaming through it all.
+    let before = sample(&text, "v2ce_frames_total").unwrap();
+    wait_for(Duration::from_secs(10), "frames to keep coming", || {
+        sample(&daemon.get("/metrics").1, "v2ce_frames_total").unwrap_or(0.0) > before
+    });
+
+    // Attackers still connected (a fresh slowloris): one SIGTERM stops it, promptly.
+    for _ in 0..100 {
+        if let Ok(mut s) = std::net::TcpStream::connect(&a) {
+            let _ = s.write_all(b"GET / HTTP/1.1\r\n");
+            held.push(s);
+        }
+    }
+    let mut daemon = daemon;
+    let started = Instant::now();
+    assert_eq!(unsafe { libc::kill(pid as i32, libc::SIGTERM) }, 0);
+    let status = loop {
+        if let Some(s) = daemon.child.try_wait().unwrap() {
+            break s;
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(10),
+            "no exit 10 s after SIGTERM while attacked"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    assert!(status.success(), "{status:?}");
+    let mut out = String::new();
+    daemon
+        .child
+        .stdout
+        .take()
+        .unwrap()
+        .read_to_string(&mut out)
+        .unwrap();
+    assert!(out.contains("\"frames_in\""), "no report: {out}");
+    eprintln!(
+        "stopped {:.2} s after SIGTERM with {} attacking connections open",
+        started.elapsed().as_secs_f64(),
+        held.len() + streams.len()
+    );
 }

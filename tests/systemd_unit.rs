@@ -85,6 +85,7 @@ fn the_unit_is_hardened() {
     let unit = std::fs::read_to_string(root.join("systemd/v2ce.service")).unwrap();
     for key in [
         "TasksMax=",
+        "MemoryMax=",
         "TimeoutStopSec=20s",
         "PrivateMounts=yes",
         "ProcSubset=pid",

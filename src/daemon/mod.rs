@@ -113,6 +113,7 @@ fn start_http(
         settings,
         stall: crate::limits::seconds("run.ready_timeout", config.run.ready_timeout, false)?,
         running: std::sync::atomic::AtomicBool::new(false),
+        listener: crate::http::ListenerCounters::default(),
     });
     let server = crate::http::HttpServer::start(&config.run.http, status.clone())?;
     tracing::info!(

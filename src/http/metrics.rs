@@ -53,7 +53,30 @@ pub fn metrics(status: &Status) -> String {
     timings(&mut x, status);
     stage1(&mut x, status);
     process(&mut x, &s, status);
+    listener(&mut x, status);
     x.0
+}
+
+/// What the listener turned away or cut off.
+fn listener(x: &mut Exposition, status: &Status) {
+    let l = &status.listener;
+    let name = "v2ce_http_connections_total";
+    x.family(
+        name,
+        "counter",
+        "Connections to this listener, by result: accepted, refused (at the connection cap), timed_out (head, exchange or stalled stream), accept_error.",
+    );
+    let get = |a: &std::sync::atomic::AtomicU64| a.load(std::sync::atomic::Ordering::Relaxed);
+    x.sample(name, "result=\"accepted\"", get(&l.accepted));
+    x.sample(name, "result=\"refused\"", get(&l.refused));
+    x.sample(name, "result=\"timed_out\"", get(&l.timed_out));
+    x.sample(name, "result=\"accept_error\"", get(&l.accept_errors));
+    x.single(
+        "v2ce_http_rejected_requests_total",
+        "counter",
+        "Requests refused: a method other than GET or HEAD, a request body, too many preview streams.",
+        get(&l.rejected),
+    );
 }
 
 /// Frames and events through the pipeline.

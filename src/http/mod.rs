@@ -1,5 +1,5 @@
 //! The daemon's optional HTTP listener (`[run] http`, off by default, loopback unless set
-//! otherwise), on `tiny_http`:
+//! otherwise), on hyper (see [`server`] for its limits):
 //!
 //! | path | what |
 //! |---|---|
@@ -10,18 +10,18 @@
 //! | `/events?window_ms=N` | the page's server-sent events: the event frame (a PNG) and the stats, 5 times a second |
 //!
 //! A scrape reads the pipeline's atomic counters and takes its histograms' locks for a copy;
-//! the stage threads never wait on the listener (a slow client blocks only its own thread).
+//! the stage threads never wait on the listener, and no client can hold it (see [`server`]).
 
 mod metrics;
+pub mod server;
 
 pub use metrics::metrics;
+pub use server::{HttpServer, ListenerCounters};
 
-use std::io::Write as _;
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
-use crate::error::{Error, Result};
 use crate::pipeline::stats::Counters;
 use crate::sink::preview::PreviewBuffer;
 
@@ -46,6 +46,8 @@ pub struct Status {
     pub stall: Duration,
     /// Set while the pipeline runs.
     pub running: AtomicBool,
+    /// What the listener refused or cut off.
+    pub listener: ListenerCounters,
 }
 
 impl Status {
@@ -145,152 +147,6 @@ fn frame_event(status: &Status, window_us: i64) -> String {
     format!("data: {body}\n\n")
 }
 
-/// The running listener.
-pub struct HttpServer {
-    server: Arc<tiny_http::Server>,
-    stop: Arc<AtomicBool>,
-    thread: Option<std::thread::JoinHandle<()>>,
-    address: std::net::SocketAddr,
-}
-
-impl HttpServer {
-    /// Listens on `address` (HOST:PORT; port 0 picks one) and serves `status`.
-    pub fn start(address: &str, status: Arc<Status>) -> Result<HttpServer> {
-        let server = tiny_http::Server::http(address)
-            .map_err(|e| Error::invalid("run.http", format!("cannot listen on {address}: {e}")))?;
-        let bound = server
-            .server_addr()
-            .to_ip()
-            .ok_or_else(|| Error::invalid("run.http", format!("{address} is not an IP address")))?;
-        let server = Arc::new(server);
-        let stop = Arc::new(AtomicBool::new(false));
-        let thread = std::thread::Builder::new()
-            .name("http".into())
-            .spawn({
-                let (server, stop) = (server.clone(), stop.clone());
-                move || serve(&server, &status, &stop)
-            })
-            .map_err(|e| Error::Run(format!("cannot start the HTTP thread: {e}")))?;
-        Ok(HttpServer {
-            server,
-            stop,
-            thread: Some(thread),
-            address: bound,
-        })
-    }
-
-    /// The address it listens on.
-    pub fn address(&self) -> std::net::SocketAddr {
-        self.address
-    }
-}
-
-impl Drop for HttpServer {
-    fn drop(&mut self) {
-        self.stop.store(true, Ordering::Relaxed);
-        self.server.unblock();
-        if let Some(t) = self.thread.take() {
-            let _ = t.join();
-        }
-    }
-}
-
-fn serve(server: &tiny_http::Server, status: &Arc<Status>, stop: &Arc<AtomicBool>) {
-    let streams = Arc::new(AtomicUsize::new(0));
-    while !stop.load(Ordering::Relaxed) {
-        let request = match server.recv_timeout(Duration::from_millis(200)) {
-            Ok(Some(r)) => r,
-            Ok(None) => continue,
-            Err(e) => {
-                tracing::warn!("HTTP listener: {e}");
-                continue;
-            }
-        };
-        let url = request.url().to_string();
-        let (path, query) = url.split_once('?').unwrap_or((&url, ""));
-        let text = |code: u16, body: String, kind: &str| {
-            let header = tiny_http::Header::from_bytes(&b"Content-Type"[..], kind.as_bytes())
-                .expect("a valid constant header");
-            tiny_http::Response::from_string(body)
-                .with_status_code(code)
-                .with_header(header)
-        };
-        let plain = "text/plain; charset=utf-8";
-        let response = match path {
-            "/metrics" => text(
-                200,
-                metrics(status),
-                "text/plain; version=0.0.4; charset=utf-8",
-            ),
-            "/healthz" => text(200, "ok\n".into(), plain),
-            "/readyz" => match status.readiness() {
-                Ok(()) => text(200, "ready\n".into(), plain),
-                Err(why) => text(503, format!("not ready: {why}\n"), plain),
-            },
-            "/" | "/index.html" => text(
-                200,
-                page(status, window_ms(query)),
-                "text/html; charset=utf-8",
-            ),
-            "/events" => {
-                let window_ms = window_ms(query);
-                if streams.fetch_add(1, Ordering::Relaxed) >= MAX_STREAMS {
-                    streams.fetch_sub(1, Ordering::Relaxed);
-                    let _ =
-                        request.respond(text(503, "too many preview pages open\n".into(), plain));
-                    continue;
-                }
-                let (status, stop, streams) = (status.clone(), stop.clone(), streams.clone());
-                let spawned = std::thread::Builder::new()
-                    .name("http-events".into())
-                    .spawn(move || {
-                        stream_events(request, &status, &stop, (window_ms * 1e3) as i64);
-                        streams.fetch_sub(1, Ordering::Relaxed);
-                    });
-                if spawned.is_err() {
-                    tracing::warn!("HTTP listener: no thread for a preview stream");
-                }
-                continue;
-            }
-            _ => text(404, "not found\n".into(), plain),
-        };
-        if let Err(e) = request.respond(response) {
-            tracing::debug!("HTTP response: {e}");
-        }
-    }
-}
-
-/// Writes server-sent events to the client until it goes away or the listener stops, each
-/// flushed as it is made.
-fn stream_events(request: tiny_http::Request, status: &Status, stop: &AtomicBool, window_us: i64) {
-    let mut w = request.into_writer();
-    let head = "HTTP/1.1 200 OK\r\nContent-Type: text/event-stream\r\nCache-Control: no-store\r\n\
-                Connection: close\r\n\r\n";
-    if w.write_all(head.as_bytes())
-        .and_then(|()| w.flush())
-        .is_err()
-    {
-        return;
-    }
-    let mut next = Instant::now();
-    while !stop.load(Ordering::Relaxed) {
-        let message = frame_event(status, window_us);
-        if w.write_all(message.as_bytes())
-            .and_then(|()| w.flush())
-            .is_err()
-        {
-            return;
-        }
-        next += PUSH_PERIOD;
-        let now = Instant::now();
-        if next > now {
-            std::thread::sleep(next - now);
-        } else {
-            next = now;
-        }
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -321,6 +177,7 @@ mod tests {
             settings: vec![("source".into(), "</script>".into())],
             stall: Duration::from_secs(60),
             running: AtomicBool::new(true),
+            listener: ListenerCounters::default(),
         }
     }
 
