@@ -69,8 +69,8 @@ impl Shard {
             let step = num("SLURM_ARRAY_TASK_STEP")?.unwrap_or(1).max(1);
             let index = id.saturating_sub(min) / step;
             return Shard::new(
-                u32::try_from(index).unwrap_or(u32::MAX),
-                u32::try_from(total).unwrap_or(u32::MAX),
+                narrow("a Slurm task index", index)?,
+                narrow("SLURM_ARRAY_TASK_COUNT", total)?,
             )
             .map(Some);
         }
@@ -85,8 +85,8 @@ impl Shard {
                 })?,
             };
             return Shard::new(
-                u32::try_from(index).unwrap_or(u32::MAX),
-                u32::try_from(count).unwrap_or(u32::MAX),
+                narrow("JOB_COMPLETION_INDEX", index)?,
+                narrow("the shard count", count)?,
             )
             .map(Some);
         }
@@ -95,8 +95,11 @@ impl Shard {
 
     /// The items of this shard, in manifest order: items sorted by size (largest first, then
     /// by name) each go to the least-loaded shard (the lowest index on a tie). Every task
-    /// computes the same split from the same manifest.
+    /// computes the same split from the same manifest. Only the first `min(count, items)`
+    /// shards can receive an item (an empty shard always wins a tie by its lower index), so
+    /// the work and memory follow the manifest, not the shard count (`--shard 0/4000000000`).
     pub fn select<'a>(&self, items: &'a [Item]) -> Vec<&'a Item> {
+        use std::cmp::Reverse;
         let mut order: Vec<usize> = (0..items.len()).collect();
         order.sort_by(|&a, &b| {
             items[b]
@@ -104,16 +107,17 @@ impl Shard {
                 .cmp(&items[a].bytes)
                 .then_with(|| items[a].name.cmp(&items[b].name))
         });
-        let mut load = vec![0u64; self.count as usize];
+        let used = (self.count as usize).min(items.len());
+        // (load, shard), least first.
+        let mut load: std::collections::BinaryHeap<Reverse<(u64, usize)>> =
+            (0..used).map(|s| Reverse((0, s))).collect();
         let mut mine = vec![false; items.len()];
         for i in order {
-            let (shard, _) = load
-                .iter()
-                .enumerate()
-                .min_by_key(|&(s, l)| (*l, s))
-                .unwrap_or((0, &0));
+            let Some(Reverse((l, shard))) = load.pop() else {
+                break;
+            };
             // Count an empty file as one byte, so empty inputs spread too.
-            load[shard] += items[i].bytes.max(1);
+            load.push(Reverse((l.saturating_add(items[i].bytes.max(1)), shard)));
             mine[i] = shard == self.index as usize;
         }
         items
@@ -122,6 +126,13 @@ impl Shard {
             .filter_map(|(it, m)| m.then_some(it))
             .collect()
     }
+}
+
+/// A shard number from the environment, refused rather than clamped past `u32::MAX` (a clamped
+/// count would split the manifest differently from the other tasks).
+fn narrow(what: &str, v: u64) -> Result<u32> {
+    u32::try_from(v)
+        .map_err(|_| Error::invalid("shard", format!("{what} {v} is above {} shards", u32::MAX)))
 }
 
 impl std::fmt::Display for Shard {
@@ -178,6 +189,77 @@ mod tests {
             first.iter().map(|i| i.name.as_str()).collect::<Vec<_>>(),
             ["a", "c"]
         );
+    }
+
+    /// The split as first written: a load per shard, the least loaded found by a scan.
+    fn select_by_scan<'a>(shard: Shard, items: &'a [Item]) -> Vec<&'a Item> {
+        let mut order: Vec<usize> = (0..items.len()).collect();
+        order.sort_by(|&a, &b| {
+            items[b]
+                .bytes
+                .cmp(&items[a].bytes)
+                .then_with(|| items[a].name.cmp(&items[b].name))
+        });
+        let mut load = vec![0u64; shard.count as usize];
+        let mut mine = vec![false; items.len()];
+        for i in order {
+            let (s, _) = load
+                .iter()
+                .enumerate()
+                .min_by_key(|&(s, l)| (*l, s))
+                .unwrap();
+            load[s] += items[i].bytes.max(1);
+            mine[i] = s == shard.index as usize;
+        }
+        items
+            .iter()
+            .zip(mine)
+            .filter_map(|(it, m)| m.then_some(it))
+            .collect()
+    }
+
+    #[test]
+    fn a_huge_shard_count_costs_what_the_manifest_does_and_splits_the_same() {
+        let items: Vec<Item> = (0..40)
+            .map(|i| item(&format!("v{i}.mp4"), (i * 7919 % 13) as u64 * 1000))
+            .collect();
+        for count in [1u32, 3, 8, 39, 40, 41, 100] {
+            for index in 0..count {
+                let shard = Shard::new(index, count).unwrap();
+                assert_eq!(shard.select(&items), select_by_scan(shard, &items));
+            }
+        }
+        // Four billion shards: the first 40 get one item each, the rest none, at once.
+        let all = Shard::new(0, 4_000_000_000).unwrap();
+        assert_eq!(all.select(&items).len(), 1);
+        let last = Shard::new(3_999_999_999, 4_000_000_000).unwrap();
+        assert!(last.select(&items).is_empty());
+        assert!(Shard::parse("0/4000000000").is_ok());
+        assert!(Shard::parse("0/4294967296").is_err());
+        let slurm = |pairs: Vec<(&'static str, String)>| {
+            move |k: &str| pairs.iter().find(|(n, _)| *n == k).map(|(_, v)| v.clone())
+        };
+        let max = Shard::from_env(
+            slurm(vec![
+                ("SLURM_ARRAY_TASK_ID", "7".into()),
+                ("SLURM_ARRAY_TASK_COUNT", u32::MAX.to_string()),
+            ]),
+            None,
+        )
+        .unwrap()
+        .unwrap();
+        assert_eq!(max.select(&items).len(), 1);
+        let above = Shard::from_env(
+            slurm(vec![
+                ("SLURM_ARRAY_TASK_ID", "7".into()),
+                (
+                    "SLURM_ARRAY_TASK_COUNT",
+                    (u64::from(u32::MAX) + 1).to_string(),
+                ),
+            ]),
+            None,
+        );
+        assert!(above.unwrap_err().to_string().contains("above"));
     }
 
     #[test]

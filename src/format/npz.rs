@@ -181,56 +181,94 @@ pub struct Decoder {
     buf: Vec<u8>,
 }
 
-/// Parses a `.npy` header from `r`; returns the record count.
-fn read_npy_header(r: &mut impl Read) -> Result<u64> {
+/// A `.npy` array's header: what the bytes after it hold.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(crate) struct NpyHeader {
+    /// The dictionary with every space removed (`{'descr':'<f4','fortran_order':False,...}`).
+    pub dict: String,
+    /// The shape, one entry per dimension.
+    pub shape: Vec<u64>,
+    /// Bytes from the file's start to the data.
+    pub data_offset: u64,
+}
+
+impl NpyHeader {
+    /// The element count, `None` past `u64`.
+    pub fn elements(&self) -> Option<u64> {
+        self.shape.iter().try_fold(1u64, |n, &d| n.checked_mul(d))
+    }
+}
+
+/// Parses a `.npy` header (format 1.0 to 3.0) from `r`, reading nothing past it; the sizes it
+/// claims are only parsed, never allocated.
+pub(crate) fn parse_npy_header(r: &mut impl Read) -> std::result::Result<NpyHeader, String> {
     let mut magic = [0u8; 8];
     r.read_exact(&mut magic)
-        .map_err(|_| bad("event_stream.npy is shorter than its magic"))?;
+        .map_err(|_| "shorter than a .npy magic".to_string())?;
     if &magic[..6] != b"\x93NUMPY" {
-        return Err(bad("event_stream is not a .npy array"));
+        return Err("not a .npy array".into());
     }
-    let len = match magic[6] {
+    let (len, prefix) = match magic[6] {
         1 => {
             let mut l = [0u8; 2];
-            r.read_exact(&mut l).map_err(|_| bad("truncated header"))?;
-            u16::from_le_bytes(l) as usize
+            r.read_exact(&mut l).map_err(|_| "truncated header")?;
+            (u16::from_le_bytes(l) as usize, 10)
         }
         2 | 3 => {
             let mut l = [0u8; 4];
-            r.read_exact(&mut l).map_err(|_| bad("truncated header"))?;
-            u32::from_le_bytes(l) as usize
+            r.read_exact(&mut l).map_err(|_| "truncated header")?;
+            (u32::from_le_bytes(l) as usize, 12)
         }
-        v => return Err(bad(format!(".npy version {v}"))),
+        v => return Err(format!(".npy version {v}")),
     };
     if len > 1 << 16 {
-        return Err(bad(format!("a {len}-byte .npy header")));
+        return Err(format!("a {len}-byte .npy header"));
     }
     let mut dict = vec![0u8; len];
-    r.read_exact(&mut dict)
-        .map_err(|_| bad("truncated header"))?;
-    let dict = String::from_utf8_lossy(&dict);
-    let squeeze: String = dict.chars().filter(|c| !c.is_whitespace()).collect();
+    r.read_exact(&mut dict).map_err(|_| "truncated header")?;
+    let dict: String = String::from_utf8_lossy(&dict)
+        .chars()
+        .filter(|c| !c.is_whitespace())
+        .collect();
+    let shape = dict
+        .split("'shape':(")
+        .nth(1)
+        .and_then(|s| s.split(')').next())
+        .ok_or("no shape in the .npy header")?;
+    let shape = shape
+        .split(',')
+        .filter(|d| !d.is_empty())
+        .map(|d| d.trim_end_matches('L').parse::<u64>())
+        .collect::<std::result::Result<Vec<u64>, _>>()
+        .map_err(|_| format!("shape ({shape}) is not a list of sizes"))?;
+    Ok(NpyHeader {
+        dict,
+        shape,
+        data_offset: prefix + len as u64,
+    })
+}
+
+/// Parses the event records' `.npy` header from `r`; returns the record count.
+fn read_npy_header(r: &mut impl Read) -> Result<u64> {
+    let header = parse_npy_header(r).map_err(|e| bad(format!("event_stream.npy: {e}")))?;
+    let squeeze = &header.dict;
     let want: String = DESCR.chars().filter(|c| !c.is_whitespace()).collect();
     // NumPy may spell the int8 field '|i1' or 'i1'.
     if !(squeeze.contains(&want) || squeeze.contains(&want.replace("'|i1'", "'i1'"))) {
         return Err(bad(format!(
-            "event_stream has another record type ({}); expected {DESCR}",
-            dict.trim()
+            "event_stream has another record type ({squeeze}); expected {DESCR}"
         )));
     }
     if squeeze.contains("'fortran_order':True") {
         return Err(bad("a Fortran-ordered event_stream"));
     }
-    let shape = squeeze
-        .split("'shape':(")
-        .nth(1)
-        .and_then(|s| s.split(')').next())
-        .ok_or_else(|| bad("no shape in the .npy header"))?;
-    shape.trim_end_matches(',').parse::<u64>().map_err(|_| {
-        bad(format!(
-            "event_stream has shape ({shape}); expected one dimension"
-        ))
-    })
+    match header.shape[..] {
+        [n] => Ok(n),
+        _ => Err(bad(format!(
+            "event_stream has shape {:?}; expected one dimension",
+            header.shape
+        ))),
+    }
 }
 
 impl Decoder {
