@@ -192,7 +192,7 @@ mod tests {
     }
 
     /// The split as first written: a load per shard, the least loaded found by a scan.
-    fn select_by_scan<'a>(shard: Shard, items: &'a [Item]) -> Vec<&'a Item> {
+    fn select_by_scan(shard: Shard, items: &[Item]) -> Vec<&Item> {
         let mut order: Vec<usize> = (0..items.len()).collect();
         order.sort_by(|&a, &b| {
             items[b]
