@@ -279,7 +279,8 @@ impl<W: Write> EventEncoder for Encoder<W> {
         let mut i = 0;
         while i < events.len() {
             let e = events[i];
-            if self.last_t != i64::MIN {
+            // Not `last_t != i64::MIN`: a first event may be at i64::MIN itself.
+            if self.time_high.is_some() {
                 super::raw::check_gap(self.last_t, e.t, "EVT 3.0")?;
             }
             self.last_t = e.t;
@@ -435,6 +436,28 @@ mod tests {
             out.iter().map(|e| e.x).collect::<Vec<_>>(),
             vec![2046, 2047]
         );
+    }
+
+    #[test]
+    fn times_across_the_whole_i64_range_are_refused_like_evt2() {
+        for (a, b) in [(i64::MIN, i64::MAX), (i64::MIN, 0), (-5, i64::MAX)] {
+            let events = [Event::new(a, 0, 0, true), Event::new(b, 1, 0, false)];
+            let mut enc = Encoder::new(Vec::new(), 64, 64).unwrap();
+            let e = enc.write(&events).unwrap_err().to_string();
+            assert!(e.contains("gap"), "{e}");
+            // One write at a time: the same.
+            let mut enc = Encoder::new(Vec::new(), 64, 64).unwrap();
+            enc.write(&events[..1]).unwrap();
+            assert!(enc.write(&events[1..]).is_err());
+            let mut enc2 = crate::format::evt2::Encoder::new(Vec::new(), 64, 64).unwrap();
+            assert!(enc2.write(&events).is_err());
+        }
+        // What fits comes back exactly, from the first representable time on.
+        let events = [
+            Event::new(i64::MIN, 0, 0, true),
+            Event::new(i64::MIN + 1000, 1, 0, false),
+        ];
+        assert_eq!(decode(&encode(&events, 64, 64)), events);
     }
 
     #[test]

@@ -22,7 +22,9 @@
 //! column, unlike a u64 one, does not turn into floats when added to the i64 offset). Events
 //! and `ms_to_idx` are buffered a chunk at a time, so memory stays flat however long the input.
 //! `ms_to_idx` has an entry per millisecond of the span whatever the event count (a 5.8-hour
-//! sparse stream has 21 million, runs of equal values that deflate compresses to little). Events
+//! sparse stream has 21 million, runs of equal values that deflate compresses to little), so a
+//! file spans at most [`MAX_SPAN_US`] (2^40 us, 12.7 days: two events that far apart take 18 s
+//! and 39 MB here) and an event farther from the first is refused. Events
 //! must come in time order and inside the sensor size given to [`Encoder::create`].
 //!
 //! Reading: any integer types are accepted for the four columns (checked against the event's
@@ -59,6 +61,10 @@ const DEFLATE_LEVEL: u8 = 1;
 
 /// The largest relative time `events/t` holds as u32.
 const T32_MAX: i64 = u32::MAX as i64;
+/// The longest span an output file covers, us (2^40, about 12.7 days): its `ms_to_idx` then has
+/// 1.1 billion entries (8.8 GB before deflate, which shrinks the runs of a sparse stream to a
+/// fraction of that). Events farther from the first are refused.
+pub const MAX_SPAN_US: i64 = 1 << 40;
 
 /// The name `events/t`'s i64 copy has while it is filled, before it takes the name `t`.
 const T_WIDE_TEMP: &str = "t_i64";
@@ -254,21 +260,28 @@ impl EventEncoder for Encoder {
                     *self.t_offset.insert(e.t)
                 }
             };
-            let rel = e.t.checked_sub(offset).ok_or_else(|| {
-                bad(format!(
-                    "{} us is too far from the first event's {offset} us for a 64-bit offset",
+            // Events come in time order, so `rel` is at least 0; it saturates far past the span.
+            let rel = e.t.saturating_sub(offset);
+            if rel > MAX_SPAN_US {
+                return Err(bad(format!(
+                    "{} us is {rel} us after the first event's {offset} us; an .h5 file spans at \
+                     most {MAX_SPAN_US} us (its ms_to_idx has an entry per millisecond): split \
+                     the stream",
                     e.t
-                ))
-            })?;
+                )));
+            }
             if rel > T32_MAX && !self.t_wide {
                 self.widen_t()?;
             }
             // The first event at or after millisecond `next_ms` (events come in time order):
-            // every millisecond up to this event's starts here.
+            // every millisecond up to this event's starts here, a chunk at a time.
             let ms = (rel / 1000) as u64;
             while self.next_ms <= ms {
-                self.bms.push(self.count);
-                self.next_ms += 1;
+                let room = (CHUNK - self.bms.len()) as u64;
+                let n = (ms + 1 - self.next_ms).min(room);
+                self.bms
+                    .resize(self.bms.len() + n as usize, self.count);
+                self.next_ms += n;
                 if self.bms.len() >= CHUNK {
                     self.flush_ms()?;
                 }
@@ -614,6 +627,39 @@ mod tests {
         let rec = super::super::read_events(&dir.join("e.hdf5")).unwrap();
         assert_eq!(rec.events.events(), &events[..]);
         assert_eq!((rec.width, rec.height), (640, 480));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn spans_are_bounded_from_any_first_time() {
+        let dir = temp_dir("span");
+        // From i64::MIN: the first event sets the offset, one past the span is refused at once
+        // (it used to fill ms_to_idx for 9e15 milliseconds).
+        let path = dir.join("min.h5");
+        let mut enc = Encoder::create(&path, 8, 8).unwrap();
+        enc.write(&[Event::new(i64::MIN, 0, 0, true)]).unwrap();
+        let e = enc
+            .write(&[Event::new(i64::MIN + MAX_SPAN_US + 1, 1, 0, true)])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("split the stream"), "{e}");
+        let e = enc
+            .write(&[Event::new(i64::MAX, 1, 0, true)])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("split the stream"), "{e}");
+        // A gap of 10 hours is filled a chunk at a time and comes back exactly.
+        let path = dir.join("gap.h5");
+        let events = [
+            Event::new(i64::MIN + 5, 0, 0, true),
+            Event::new(i64::MIN + 5 + 36_000_000_000, 1, 1, false),
+        ];
+        write(&path, 8, 8, &events, 1);
+        let (_, got) = read(&path, 10);
+        assert_eq!(got, events);
+        let (t, ms, _, _) = stored(&path);
+        assert_eq!(ms.len(), 36_000_001);
+        assert_eq!(ms, ms_to_idx_of(&t));
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
