@@ -81,6 +81,14 @@ impl Config {
         for sink in &outputs {
             sink.validate()?;
         }
+        let files: Vec<&crate::sink::file::FileSinkConfig> = outputs
+            .iter()
+            .filter_map(|s| match s {
+                SinkConfig::File(f) => Some(f),
+                _ => None,
+            })
+            .collect();
+        crate::sink::file::distinct_paths(&files)?;
         if self.run.wait_for_client && !outputs.iter().any(SinkConfig::serves_clients) {
             return Err(Error::invalid("run.wait_for_client", "needs a TCP output"));
         }
@@ -169,6 +177,43 @@ mod tests {
         assert!(err.contains("line 2"), "{err}");
         let c = Config::parse("[stage2]\nsampler = \"ldati-random\"\n", Path::new("x")).unwrap();
         assert_eq!(c.stage2.sampler, SamplerKind::LdatiRandom);
+    }
+
+    #[test]
+    fn two_file_outputs_on_one_file_are_refused() {
+        let dir = std::env::temp_dir().join(format!("v2ce-same-out-{}", std::process::id()));
+        std::fs::create_dir_all(dir.join("sub")).unwrap();
+        let d = dir.display();
+        for (a, b) in [
+            (format!("{d}/a.csv"), format!("{d}/a.csv")),
+            (format!("{d}/a.csv"), format!("{d}/sub/../a.csv")),
+            (format!("{d}/a.csv"), format!("{d}/./a.csv")),
+        ] {
+            let text = format!("[run]\nout = \"{a}\"\n[[sink]]\ntype = \"file\"\npath = \"{b}\"\n");
+            let e = Config::parse(&text, Path::new("x.toml"))
+                .unwrap()
+                .validate()
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("two file outputs"), "{a} {b}: {e}");
+        }
+        // Through a link to an existing file.
+        std::fs::write(dir.join("real.csv"), "").unwrap();
+        std::os::unix::fs::symlink(dir.join("real.csv"), dir.join("link.csv")).unwrap();
+        let text = format!(
+            "[run]\nout = \"{d}/real.csv\"\n[[sink]]\ntype = \"file\"\npath = \"{d}/link.csv\"\n"
+        );
+        let c = Config::parse(&text, Path::new("x.toml")).unwrap();
+        assert!(c.validate().is_err());
+        // Two files: fine.
+        let text = format!(
+            "[run]\nout = \"{d}/a.csv\"\n[[sink]]\ntype = \"file\"\npath = \"{d}/b.csv\"\n"
+        );
+        Config::parse(&text, Path::new("x.toml"))
+            .unwrap()
+            .validate()
+            .unwrap();
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]

@@ -279,8 +279,7 @@ impl EventEncoder for Encoder {
             while self.next_ms <= ms {
                 let room = (CHUNK - self.bms.len()) as u64;
                 let n = (ms + 1 - self.next_ms).min(room);
-                self.bms
-                    .resize(self.bms.len() + n as usize, self.count);
+                self.bms.resize(self.bms.len() + n as usize, self.count);
                 self.next_ms += n;
                 if self.bms.len() >= CHUNK {
                     self.flush_ms()?;

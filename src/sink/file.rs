@@ -20,6 +20,43 @@ pub struct FileSinkConfig {
     pub evt: Option<u8>,
 }
 
+/// What a path names, for comparing outputs: the file itself when it exists (links resolved),
+/// else its resolved folder and its name, else the path made absolute.
+fn identity(path: &Path) -> std::path::PathBuf {
+    if let Ok(p) = path.canonicalize() {
+        return p;
+    }
+    let folder = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    match (folder.canonicalize(), path.file_name()) {
+        (Ok(d), Some(name)) => d.join(name),
+        _ => std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf()),
+    }
+}
+
+/// Refuses two file outputs on one file (the same path, spelled differently or through a
+/// link): each would report every event written while the file held a mix of both.
+pub fn distinct_paths(files: &[&FileSinkConfig]) -> Result<()> {
+    let mut seen: Vec<(std::path::PathBuf, &str)> = Vec::new();
+    for f in files {
+        let id = identity(Path::new(&f.path));
+        if let Some((_, first)) = seen.iter().find(|(other, _)| *other == id) {
+            return Err(Error::invalid(
+                "outputs",
+                format!(
+                    "two file outputs write {} ('{first}' and '{}'): give each its own file",
+                    id.display(),
+                    f.path
+                ),
+            ));
+        }
+        seen.push((id, &f.path));
+    }
+    Ok(())
+}
+
 impl FileSinkConfig {
     /// A file sink writing `path`.
     pub fn new(path: &str) -> Self {
