@@ -496,3 +496,68 @@ fn a_daemon_waiting_for_a_client_is_ready() {
     assert!(status.code().is_some(), "{status:?}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// A recording under the default `drop-oldest` on a machine that cannot keep up (the fixture
+/// replayed at 8 times real time at 1280x720): the file holds exactly the events its closing
+/// line and the report say were written, none dropped; frames the pipeline shed are on the log
+/// as the recording's loss, and the network output's losses are counted as its own.
+#[test]
+fn a_recording_under_drop_oldest_holds_what_it_says_and_names_its_loss() {
+    let dir = common::temp_dir("daemon-starved-recording");
+    let out = dir.join("rec.aedat4");
+    let (ok, report, log) = run_to_end(&[
+        "--source",
+        fixture().to_str().unwrap(),
+        "--replay-speed",
+        "8",
+        "--size",
+        "1280x720",
+        "--max-frames",
+        "90",
+        "--udp",
+        "127.0.0.1:9",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(ok, "{log:#?}");
+    let sinks = report["stats"]["sinks"].as_array().unwrap();
+    let file = sinks
+        .iter()
+        .find(|s| s["recording"] == true)
+        .unwrap_or_else(|| panic!("no recording in {report}"));
+    let written = v2ce::format::read_events(&out).unwrap().events.len() as u64;
+    assert_eq!(file["stats"]["events_sent"].as_u64(), Some(written));
+    assert_eq!(file["stats"]["events_dropped"].as_u64(), Some(0));
+    assert_eq!(stat(&report, "events_out"), written);
+    let line = log
+        .iter()
+        .find(|l| l.contains("rec.aedat4") && l.contains("events sent"))
+        .unwrap_or_else(|| panic!("no closing line for the file: {log:#?}"));
+    assert!(
+        line.contains(&format!("{written} events sent, 0 dropped")),
+        "{line}"
+    );
+    let shed = stat(&report, "frames_dropped") - stat(&report, "frames_out_of_order");
+    if shed > 0 {
+        assert!(
+            line.contains(&format!("lacks the events of the {shed} frames")),
+            "{line}"
+        );
+    }
+    // Every output: what it was given is what it sent, lost, or had refused (UDP to a closed
+    // port).
+    for s in sinks {
+        let st = &s["stats"];
+        let n = |k: &str| st[k].as_u64().unwrap();
+        assert_eq!(
+            n("events_in"),
+            n("events_sent") + n("events_dropped") + n("events_refused"),
+            "{s}"
+        );
+        assert!(n("events_evicted") <= n("events_dropped"), "{s}");
+    }
+    eprintln!(
+        "{written} events recorded; {shed} of {} frames shed upstream",
+        stat(&report, "frames_in")
+    );
+}

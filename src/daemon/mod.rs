@@ -209,11 +209,19 @@ pub fn run(config: &Config, stop: &AtomicBool) -> Result<Report> {
         tracing::error!("{summary}");
     }
     for sink in &s.sinks {
-        tracing::info!(
-            "{}: {} events sent, {} dropped{}{}",
+        let line = format!(
+            "{}: {} events sent, {} dropped{}{}{}",
             sink.sink,
             sink.stats.events_sent,
             sink.stats.events_dropped,
+            if sink.stats.events_evicted > 0 {
+                format!(
+                    " ({} evicted from its queue: the output could not keep up)",
+                    sink.stats.events_evicted
+                )
+            } else {
+                String::new()
+            },
             if sink.stats.events_refused > 0 {
                 format!(
                     ", {} refused (no receiver on the port)",
@@ -227,6 +235,19 @@ pub fn run(config: &Config, stop: &AtomicBool) -> Result<Report> {
                 .map(|f| format!(" (failed: {f})"))
                 .unwrap_or_default()
         );
+        let starved = s.frames_dropped.saturating_sub(s.frames_out_of_order);
+        if sink.recording && starved > 0 {
+            // The file holds every event it was given, but not those of frames lost upstream.
+            tracing::warn!(
+                "{line}; it lacks the events of the {} frames dropped before Stage 2 (the machine \
+                 could not keep up under --queue-policy drop-oldest; `block` keeps every frame)",
+                starved
+            );
+        } else if sink.stats.events_dropped > 0 || sink.failed.is_some() {
+            tracing::warn!("{line}");
+        } else {
+            tracing::info!("{line}");
+        }
     }
     Ok(report)
 }

@@ -122,7 +122,7 @@ fn sinks(x: &mut Exposition, sinks: &[SinkSnapshot]) {
     x.family(
         name,
         "counter",
-        "Events per output, by result: sent (handed to the kernel or written), dropped, refused (UDP port closed).",
+        "Events per output, by result: sent (handed to the kernel or written), dropped (lost by the output or evicted from its queue), refused (UDP port closed).",
     );
     for k in sinks {
         let n = label(&k.sink);
@@ -144,7 +144,13 @@ fn sinks(x: &mut Exposition, sinks: &[SinkSnapshot]) {
         );
     }
     type SinkValue = fn(&SinkSnapshot) -> u64;
-    let per_sink: [(&str, &str, &str, SinkValue); 4] = [
+    let per_sink: [(&str, &str, &str, SinkValue); 5] = [
+        (
+            "v2ce_sink_evicted_events_total",
+            "counter",
+            "Of the dropped events, those evicted from the output's queue before it took them (drop-oldest; never a file's).",
+            |k| k.stats.events_evicted,
+        ),
         (
             "v2ce_sink_late_events_total",
             "counter",
@@ -181,7 +187,7 @@ fn sinks(x: &mut Exposition, sinks: &[SinkSnapshot]) {
 /// Per-queue families.
 fn queues(x: &mut Exposition, queues: &[QueueSnapshot]) {
     type QueueValue = fn(&QueueSnapshot) -> u64;
-    let per_queue: [(&str, &str, &str, QueueValue); 3] = [
+    let per_queue: [(&str, &str, &str, QueueValue); 4] = [
         (
             "v2ce_queue_depth",
             "gauge",
@@ -195,9 +201,15 @@ fn queues(x: &mut Exposition, queues: &[QueueSnapshot]) {
             |q| q.capacity as u64,
         ),
         (
+            "v2ce_queue_dropped_items_total",
+            "counter",
+            "Items a full queue evicted (drop-oldest): frames in capture, sequenced and stage1, event batches in an output's queue.",
+            |q| q.dropped,
+        ),
+        (
             "v2ce_queue_dropped_events_total",
             "counter",
-            "Events in items a full queue evicted (drop-oldest).",
+            "Simulated events in the items a full queue evicted (0 for frames still without events).",
             |q| q.dropped_events,
         ),
     ];

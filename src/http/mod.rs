@@ -155,7 +155,7 @@ mod tests {
 
     fn status() -> Status {
         let counters = Arc::new(Counters::new());
-        let i = counters.add_sink("file \"a\\b\".csv".into());
+        let i = counters.add_sink("file \"a\\b\".csv".into(), true, None);
         counters.update_sink(
             i,
             SinkStats {

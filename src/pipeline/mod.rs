@@ -211,8 +211,9 @@ pub struct Batch {
 }
 
 impl Weight for Captured {
+    /// A frame carries no events yet: its loss is a dropped frame, not dropped events.
     fn weight(&self) -> u64 {
-        1
+        0
     }
 }
 impl Weight for Computed {
@@ -308,9 +309,14 @@ pub fn run(
         // A sink that holds events back (emission at event time) keeps that long's batches
         // queued, taking frames to come no closer than 10 ms (100 frames/s).
         let held = (sink.holds_back().as_secs_f64() / 0.010).ceil() as usize;
-        let (tx, rx, s) = queue::<Arc<Batch>>(&format!("sink{i}"), burst + held, policy);
-        counters.watch_queue(s);
-        let index = counters.add_sink(sink.describe());
+        let sink_policy = if sink.is_recording() {
+            QueuePolicy::Block
+        } else {
+            policy
+        };
+        let (tx, rx, s) = queue::<Arc<Batch>>(&format!("sink{i}"), burst + held, sink_policy);
+        counters.watch_queue(s.clone());
+        let index = counters.add_sink(sink.describe(), sink.is_recording(), Some(s));
         sink_txs.push(tx);
         sink_ends.push((sink, rx, index));
     }
@@ -783,19 +789,25 @@ mod tests {
     use crate::sink::SinkStats;
     use std::sync::atomic::AtomicU64;
 
-    /// Records what it gets; fails on the `fail_at`-th send when set.
+    /// Records what it gets; fails on the `fail_at`-th send when set; takes `delay` per send.
     struct Recorder {
         got: Arc<Mutex<Vec<Event>>>,
         sends: u64,
         fail_at: Option<u64>,
         stats: SinkStats,
+        delay: Duration,
+        recording: bool,
     }
 
     impl Sink for Recorder {
         fn describe(&self) -> String {
             "recorder".into()
         }
+        fn is_recording(&self) -> bool {
+            self.recording
+        }
         fn send(&mut self, events: &[Event]) -> Result<()> {
+            std::thread::sleep(self.delay);
             self.sends += 1;
             if Some(self.sends) == self.fail_at {
                 return Err(Error::Run("disk full".into()));
@@ -823,8 +835,80 @@ mod tests {
             sends: 0,
             fail_at,
             stats: SinkStats::default(),
+            delay: Duration::ZERO,
+            recording: false,
         };
         (Box::new(sink), got)
+    }
+
+    /// An output taking `ms` per batch: a recording (a file) or not.
+    fn slow(recording: bool, ms: u64) -> (Box<dyn Sink>, Arc<Mutex<Vec<Event>>>) {
+        let got = Arc::new(Mutex::new(Vec::new()));
+        let sink = Recorder {
+            got: got.clone(),
+            sends: 0,
+            fail_at: None,
+            stats: SinkStats::default(),
+            delay: Duration::from_millis(ms),
+            recording,
+        };
+        (Box::new(sink), got)
+    }
+
+    #[test]
+    fn under_drop_oldest_a_recording_keeps_every_event_and_other_outputs_count_evictions() {
+        let (file, recorded) = slow(true, 1);
+        let (net, sent) = slow(false, 25);
+        let options = Options {
+            tick: Duration::from_secs(3600),
+            policy: QueuePolicy::DropOldest,
+            capacity: 2,
+            ..Options::default()
+        };
+        let stop = AtomicBool::new(false);
+        let config = crate::config::Config::default();
+        // 200 frames at 5 ms replayed at half speed: 10 ms a frame, which Stage 1 and the
+        // recording keep up with and the other output (25 ms a batch) does not.
+        let source = Source {
+            pace: Some(0.5),
+            ..Source::file(edge(200))
+        };
+        let stages = Stages {
+            stage1: crate::stage1::build(
+                &config.stage1,
+                config.stage2.bins,
+                source.first.size(),
+                Default::default(),
+            )
+            .unwrap(),
+            sampler: config.stage2.sampler.build(config.stage2.seed),
+            sinks: vec![file, net],
+        };
+        let report = run(source, stages, &options, &stop, &mut |_| {}).unwrap();
+        let s = &report.stats;
+        let (f, n) = (&s.sinks[0], &s.sinks[1]);
+        assert!(f.recording && !n.recording);
+        // The recording holds every event Stage 2 handed out, and says it lost none.
+        assert_eq!(recorded.lock().unwrap().len() as u64, s.events_out);
+        assert_eq!(f.stats.events_sent, s.events_out);
+        assert_eq!((f.stats.events_dropped, f.stats.events_evicted), (0, 0));
+        // The other output's queue evicted (it is slower, and never blocks Stage 2), and its
+        // counts say so: given = sent + dropped, every drop an eviction.
+        let got = sent.lock().unwrap().len() as u64;
+        assert_eq!(n.stats.events_sent, got);
+        assert!(n.stats.events_evicted > 0, "{:?} {s:?}", n.stats);
+        assert_eq!(n.stats.events_dropped, n.stats.events_evicted);
+        assert_eq!(n.stats.events_in, got + n.stats.events_evicted);
+        assert_eq!(n.stats.events_in, s.events_out);
+        assert!(s.frames_processed > 100, "{s:?}");
+        // Frames a queue evicted carry no events yet: the frame queues count none.
+        for q in s
+            .queues
+            .iter()
+            .filter(|q| q.name == "capture" || q.name == "sequenced")
+        {
+            assert_eq!(q.dropped_events, 0, "{q:?}");
+        }
     }
 
     fn edge(frames: usize) -> Box<dyn FrameSource> {

@@ -33,6 +33,8 @@ pub struct Counters {
     emission: Mutex<LatencyPair>,
     queues: Mutex<Vec<Arc<QueueStats>>>,
     sinks: Mutex<Vec<SinkSnapshot>>,
+    /// Each sink's queue, whose evictions are that sink's losses.
+    sink_queues: Mutex<Vec<Option<Arc<QueueStats>>>>,
     last: Mutex<Option<Mark>>,
     /// Microseconds from `started` to the last frame read, plus one (0: none yet).
     last_frame_us: AtomicU64,
@@ -156,6 +158,8 @@ pub struct QueueSnapshot {
 pub struct SinkSnapshot {
     /// What it is.
     pub sink: String,
+    /// A recording (a file), whose queue never evicts.
+    pub recording: bool,
     /// Its counters.
     pub stats: SinkStats,
     /// Why it stopped, if it failed.
@@ -281,6 +285,7 @@ impl Counters {
             emission: LatencyPair::new(),
             queues: Mutex::new(Vec::new()),
             sinks: Mutex::new(Vec::new()),
+            sink_queues: Mutex::new(Vec::new()),
             last: Mutex::new(None),
             last_frame_us: AtomicU64::new(0),
             stage1: Mutex::new(None),
@@ -358,15 +363,36 @@ impl Counters {
         lock(&self.queues).push(q);
     }
 
-    /// Registers a sink; returns its index for [`Counters::update_sink`].
-    pub fn add_sink(&self, describe: String) -> usize {
+    /// Registers a sink (a recording or not, see [`crate::sink::Sink::is_recording`]) fed by
+    /// `queue`, whose evictions count as its losses; returns its index for
+    /// [`Counters::update_sink`].
+    pub fn add_sink(
+        &self,
+        describe: String,
+        recording: bool,
+        queue: Option<Arc<QueueStats>>,
+    ) -> usize {
         let mut sinks = lock(&self.sinks);
         sinks.push(SinkSnapshot {
             sink: describe,
+            recording,
             stats: SinkStats::default(),
             failed: None,
         });
+        lock(&self.sink_queues).push(queue);
         sinks.len() - 1
+    }
+
+    /// Every sink's state, its queue's evictions counted among what it was given and lost.
+    fn sinks(&self) -> Vec<SinkSnapshot> {
+        let mut sinks = lock(&self.sinks).clone();
+        for (s, q) in sinks.iter_mut().zip(lock(&self.sink_queues).iter()) {
+            let evicted = q.as_ref().map_or(0, |q| q.dropped_weight());
+            s.stats.events_evicted = evicted;
+            s.stats.events_in += evicted;
+            s.stats.events_dropped += evicted;
+        }
+        sinks
     }
 
     /// Publishes a sink's counters (and its failure).
@@ -469,7 +495,7 @@ impl Counters {
             capture_lag_total,
             processing_total,
             emission_total,
-            sinks: lock(&self.sinks).clone(),
+            sinks: self.sinks(),
             cpu_s: usage.cpu_s,
             cpu_percent: 100.0 * (usage.cpu_s - previous.cpu_s) / dt,
             rss_kib: usage.rss_kib,

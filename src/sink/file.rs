@@ -153,6 +153,10 @@ impl FileSink {
 }
 
 impl Sink for FileSink {
+    fn is_recording(&self) -> bool {
+        true
+    }
+
     fn describe(&self) -> String {
         format!("file {} ({})", self.path.display(), self.format.name())
     }

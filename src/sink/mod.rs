@@ -78,8 +78,12 @@ pub struct SinkStats {
     pub events_in: u64,
     /// Events written or sent (for TCP: to at least one client).
     pub events_sent: u64,
-    /// Events dropped (a datagram that could not be sent, a packet no client could take).
+    /// Events this output lost: dropped by the output itself (a datagram that could not be
+    /// sent, a packet no client could take) or evicted from its queue (`events_evicted`).
     pub events_dropped: u64,
+    /// Of `events_dropped`, those evicted from the output's queue before it could take them
+    /// (drop-oldest, an output slower than the pipeline; never a recording's).
+    pub events_evicted: u64,
     /// Events in datagrams the kernel refused because the receiver's port was closed (UDP: an
     /// ICMP port-unreachable came back for an earlier datagram); `events_sent` counts what was
     /// handed to the kernel, which UDP cannot follow further.
@@ -140,6 +144,14 @@ pub trait Sink: Send {
 
     /// The counters so far.
     fn stats(&self) -> SinkStats;
+
+    /// Whether it is a recording that must hold every event it is given (a file): its queue
+    /// then blocks, whatever the queue policy, so it never evicts; a live run that cannot
+    /// keep up drops whole frames before Stage 1 instead (counted, and named on its closing
+    /// line). Network outputs keep the policy: a late event is worth less than a live stream.
+    fn is_recording(&self) -> bool {
+        false
+    }
 
     /// Whether its deliveries count in the pipeline's latency figures (`false` for the preview
     /// tap, which only copies events for the HTTP page and would pull the median down).
