@@ -65,6 +65,7 @@ pub fn convert(
         tick: Duration::from_millis(250),
         stop_flush_limit: None,
         counters: None,
+        lag_budget: None,
     };
     let mut on_tick = |s: &pipeline::stats::Snapshot| {
         progress(&ConvertReport {

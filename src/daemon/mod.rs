@@ -58,6 +58,7 @@ pub fn options(run: &RunConfig) -> Options {
         // The systemd unit gives a stop 20 s (TimeoutStopSec) for everything.
         stop_flush_limit: Some(Duration::from_secs(8)),
         counters: None,
+        lag_budget: None,
     }
 }
 

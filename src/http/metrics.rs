@@ -96,11 +96,14 @@ fn pipeline(x: &mut Exposition, s: &Snapshot) {
     x.family(
         "v2ce_frames_dropped_total",
         "counter",
-        "Frames dropped, by cause: evicted from a full queue, or out of order.",
+        "Frames dropped, by cause: evicted from a full queue, skipped before Stage 1 as older than the lag budget (late), or out of order.",
     );
     let name = "v2ce_frames_dropped_total";
-    let queue = s.frames_dropped.saturating_sub(s.frames_out_of_order);
+    let queue = s
+        .frames_dropped
+        .saturating_sub(s.frames_out_of_order + s.frames_late);
     x.sample(name, "cause=\"queue\"", queue);
+    x.sample(name, "cause=\"late\"", s.frames_late);
     x.sample(name, "cause=\"out_of_order\"", s.frames_out_of_order);
     x.single(
         "v2ce_source_restarts_total",

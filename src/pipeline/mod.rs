@@ -97,6 +97,9 @@ impl Source {
     }
 }
 
+/// The lag budget when no output holds events back (see [`Options::lag_budget`]).
+pub const DEFAULT_LAG_BUDGET: Duration = Duration::from_millis(100);
+
 /// How the pipeline runs.
 #[derive(Debug, Clone)]
 pub struct Options {
@@ -117,6 +120,13 @@ pub struct Options {
     pub stop_flush_limit: Option<Duration>,
     /// Counters to update (shared with an HTTP listener); fresh ones when `None`.
     pub counters: Option<Arc<Counters>>,
+    /// Under drop-oldest with a paced or live source and a tier that takes a frame at a time:
+    /// a frame whose age plus what Stage 1 has lately been taking exceeds this, with a newer
+    /// frame waiting, is skipped (counted as late) instead of simulated, so a machine that
+    /// falls behind sheds frames before spending time on them. `None`: half the shortest
+    /// emission delay of the outputs (the events must reach their output before it sends
+    /// them), else [`DEFAULT_LAG_BUDGET`].
+    pub lag_budget: Option<Duration>,
 }
 
 impl Default for Options {
@@ -128,6 +138,7 @@ impl Default for Options {
             duration: None,
             tick: Duration::from_secs(10),
             stop_flush_limit: None,
+            lag_budget: None,
             counters: None,
         }
     }
@@ -275,10 +286,24 @@ pub fn run(
     if sinks.is_empty() {
         return Err(Error::invalid("sinks", "no output configured"));
     }
-    // A live run that may drop frames lets Stage 1 trade accuracy for time first; under
-    // `block`, which loses nothing, it runs as offline and a slow machine lags instead.
+    // A live run that may drop frames sheds work in order as the machine falls behind: Stage 1
+    // first trades its own detail for time (`pace`: the physics tier's sub-frames); then whole
+    // frames that would be late are skipped before Stage 1 spends time on them; last, full
+    // queues evict. Under `block`, which loses nothing, it runs as offline and a slow machine
+    // lags instead.
+    let mut shed_after = None;
     if let (QueuePolicy::DropOldest, Some(speed)) = (options.policy, source.speed()) {
         stage1.pace(speed);
+        if stage1.stats().window <= 1 && std::env::var_os("V2CE_NO_SHED").is_none() {
+            shed_after = Some(options.lag_budget.unwrap_or_else(|| {
+                sinks
+                    .iter()
+                    .map(|s| s.holds_back())
+                    .filter(|d| !d.is_zero())
+                    .min()
+                    .map_or(DEFAULT_LAG_BUDGET, |d| d / 2)
+            }));
+        }
     }
     let size = source.first.size();
     let counters = options
@@ -349,7 +374,7 @@ pub fn run(
                 .spawn_scoped(scope, {
                     let stats = &stage1_stats;
                     let limit = options.stop_flush_limit;
-                    move || stage1_stage(seq_rx, s1_tx, stage1, ctx, stats, limit)
+                    move || stage1_stage(seq_rx, s1_tx, stage1, ctx, stats, limit, shed_after)
                 })
                 .map_err(spawn_err)?,
         );
@@ -595,8 +620,10 @@ fn stage1_stage(
     ctx: &Ctx,
     stats: &Mutex<Stage1Stats>,
     stop_flush_limit: Option<Duration>,
+    shed_after: Option<Duration>,
 ) {
     let mut generation = 0;
+    let mut took = Duration::ZERO;
     let mut batches: Vec<Stage1Batch> = Vec::new();
     let mut arrivals: VecDeque<(i64, Instant)> = VecDeque::new();
     // Hands the batches on; false when the next stage has gone.
@@ -620,6 +647,18 @@ fn stage1_stage(
         *stats.lock().unwrap_or_else(|e| e.into_inner()) = s;
     };
     while let Some(item) = rx.recv() {
+        // Too old to be on time once simulated (its age plus what Stage 1 has been taking),
+        // and a newer frame waits: skipped, its interval folded into the next (the pixel model
+        // integrates over the longer interval).
+        if let Some(budget) = shed_after {
+            if item.generation == generation
+                && !rx.is_empty()
+                && item.at.elapsed() + took > budget
+            {
+                Counters::bump(&ctx.counters.frames_late);
+                continue;
+            }
+        }
         if item.generation != generation {
             generation = item.generation;
             // What the tier holds from before the break goes on; then it starts over.
@@ -635,9 +674,12 @@ fn stage1_stage(
         if arrivals.len() > ARRIVALS_KEPT {
             arrivals.pop_front();
         }
+        let started = Instant::now();
         if let Err(e) = stage1.push(&item.frame, &mut batches) {
             return ctx.fail(format!("Stage 1 at {} us: {e}", item.frame.t));
         }
+        // What a frame has been taking lately (a smoothed wall time: the machine's load in it).
+        took = (took * 3 + started.elapsed()) / 4;
         Counters::bump(&ctx.counters.frames_processed);
         publish(stage1.as_ref());
         if !send(&mut batches, &arrivals) {

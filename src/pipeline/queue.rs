@@ -177,6 +177,11 @@ impl<T: Weight> QueueTx<T> {
 }
 
 impl<T> QueueRx<T> {
+    /// Whether nothing waits in the queue now.
+    pub fn is_empty(&self) -> bool {
+        self.rx.is_empty()
+    }
+
     /// The next item; `None` when every producer has gone and nothing is left.
     pub fn recv(&self) -> Option<T> {
         let item = self.rx.recv().ok()?;

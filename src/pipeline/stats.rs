@@ -21,6 +21,9 @@ pub struct Counters {
     pub frames_in: AtomicU64,
     /// Frames the sequencer rejected (a time not after the previous frame's).
     pub frames_out_of_order: AtomicU64,
+    /// Frames Stage 1 skipped because they were already older than the lag budget (a live
+    /// run falling behind; see [`crate::pipeline::Options::lag_budget`]).
+    pub frames_late: AtomicU64,
     /// Frames through Stage 1.
     pub frames_processed: AtomicU64,
     /// Events handed to the sinks.
@@ -175,10 +178,13 @@ pub struct Snapshot {
     pub frames_in: u64,
     /// Frames through Stage 1.
     pub frames_processed: u64,
-    /// Frames evicted from the frame queues (drop-oldest) or rejected as out of order.
+    /// Frames evicted from the frame queues (drop-oldest), skipped as too late, or rejected as
+    /// out of order.
     pub frames_dropped: u64,
     /// Of those, rejected as out of order.
     pub frames_out_of_order: u64,
+    /// Of those, skipped before Stage 1 as older than the lag budget.
+    pub frames_late: u64,
     /// Times the source was reopened.
     pub source_restarts: u64,
     /// Events handed to the sinks.
@@ -276,6 +282,7 @@ impl Counters {
             started: Instant::now(),
             frames_in: AtomicU64::new(0),
             frames_out_of_order: AtomicU64::new(0),
+            frames_late: AtomicU64::new(0),
             frames_processed: AtomicU64::new(0),
             events_out: AtomicU64::new(0),
             source_restarts: AtomicU64::new(0),
@@ -457,6 +464,7 @@ impl Counters {
         let frames_in = self.frames_in.load(Ordering::Relaxed);
         let events_out = self.events_out.load(Ordering::Relaxed);
         let out_of_order = self.frames_out_of_order.load(Ordering::Relaxed);
+        let late = self.frames_late.load(Ordering::Relaxed);
         // Frames are lost in the queues before the sinks (a sink queue loses events instead).
         let frames_evicted: u64 = queues
             .iter()
@@ -482,8 +490,9 @@ impl Counters {
             uptime_s: (now - self.started).as_secs_f64(),
             frames_in,
             frames_processed: self.frames_processed.load(Ordering::Relaxed),
-            frames_dropped: frames_evicted + out_of_order,
+            frames_dropped: frames_evicted + out_of_order + late,
             frames_out_of_order: out_of_order,
+            frames_late: late,
             source_restarts: self.source_restarts.load(Ordering::Relaxed),
             events_out,
             events_per_s: (events_out - previous.events_out) as f64 / dt,
