@@ -294,7 +294,7 @@ pub fn run(
     let mut shed_after = None;
     if let (QueuePolicy::DropOldest, Some(speed)) = (options.policy, source.speed()) {
         stage1.pace(speed);
-        if stage1.stats().window <= 1 && std::env::var_os("V2CE_NO_SHED").is_none() {
+        if stage1.stats().window <= 1 {
             shed_after = Some(options.lag_budget.unwrap_or_else(|| {
                 sinks
                     .iter()
@@ -651,9 +651,7 @@ fn stage1_stage(
         // and a newer frame waits: skipped, its interval folded into the next (the pixel model
         // integrates over the longer interval).
         if let Some(budget) = shed_after {
-            if item.generation == generation
-                && !rx.is_empty()
-                && item.at.elapsed() + took > budget
+            if item.generation == generation && !rx.is_empty() && item.at.elapsed() + took > budget
             {
                 Counters::bump(&ctx.counters.frames_late);
                 continue;
@@ -895,6 +893,54 @@ mod tests {
             recording,
         };
         (Box::new(sink), got)
+    }
+
+    #[test]
+    fn a_live_run_behind_its_lag_budget_sheds_frames_before_stage1_and_block_never_does() {
+        let run_with = |policy: QueuePolicy| {
+            let (sink, got) = recorder(None);
+            let options = Options {
+                tick: Duration::from_secs(3600),
+                policy,
+                // Every frame with a newer one waiting is too old.
+                lag_budget: Some(Duration::ZERO),
+                ..Options::default()
+            };
+            let stop = AtomicBool::new(false);
+            let config = crate::config::Config::default();
+            // 120 frames of 5 ms at 50 times real time: a frame every 0.1 ms, faster than
+            // Stage 1 takes them.
+            let source = Source {
+                pace: Some(50.0),
+                ..Source::file(edge(120))
+            };
+            let stages = Stages {
+                stage1: crate::stage1::build(
+                    &config.stage1,
+                    config.stage2.bins,
+                    source.first.size(),
+                    Default::default(),
+                )
+                .unwrap(),
+                sampler: config.stage2.sampler.build(config.stage2.seed),
+                sinks: vec![sink],
+            };
+            let report = run(source, stages, &options, &stop, &mut |_| {}).unwrap();
+            let events = got.lock().unwrap().len() as u64;
+            (report, events)
+        };
+        let (shed, events) = run_with(QueuePolicy::DropOldest);
+        let s = &shed.stats;
+        assert!(s.frames_late > 0, "{s:?}");
+        assert_eq!(s.frames_processed + s.frames_dropped, s.frames_in, "{s:?}");
+        // Shed only with a newer frame waiting: the last frame is always simulated, and the
+        // events still span the whole replay (skipped intervals fold into the next).
+        assert_eq!(shed.last_t, Some(119 * 5_000));
+        assert_eq!(events, s.events_out);
+        assert!(events > 0);
+        let (kept, _) = run_with(QueuePolicy::Block);
+        assert_eq!(kept.stats.frames_late, 0);
+        assert_eq!(kept.stats.frames_processed, 120);
     }
 
     #[test]
