@@ -273,73 +273,84 @@ fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
 }
 
 /// aestream's UDP receiver (the usual SPIF receiver, and the entry point of its PyTorch, Norse
-/// and snnTorch tensors) gets every event the daemon sends with its default settings, counted
-/// per pixel against what `v2ce convert` writes for the same frames and seed: the daemon's
-/// 512-byte datagrams fit aestream's 512-byte reads, and emission at event time spreads them out.
-/// Exact at 346x260. At 640x480 (a million events a second, about 9,000 datagrams a second)
-/// the kernel's default receive buffer holds some 20 ms of datagrams, and on a busy 2-core
-/// machine aestream's receiving thread is sometimes off its core longer than that: CI saw
-/// 0.04% missing once with the daemon reporting every event sent (issue 25 takes this on). So
-/// there at most 0.5% may be missing in all, and no pixel may get more than its count. Meant
-/// for release builds, as CI runs it: a debug build cannot keep up with 640x480 in real time,
-/// and what it sends late leaves in bursts.
+/// and snnTorch tensors) gets every event the daemon sends with its default settings (the
+/// motion model with its live cap keeper, drop-oldest queues, emission at event time, 512-byte
+/// datagrams that fit aestream's 512-byte reads), counted per pixel against the daemon's own
+/// recording of the run (`--out`, which never drops: what it holds is what was sent), at
+/// 346x260 and at 640x480 (a million events a second, about 9,000 datagrams a second). Also
+/// checked: the recording equals what the UDP output reports sent. The kernel's default
+/// receive buffer holds some 20 ms of datagrams at 640x480, so a receiving thread kept off its
+/// core longer than that loses some (the daemon cannot see it: UDP); on a loaded machine
+/// that happened (0.04% once in CI before issue 25). So a size whose first run is not exact
+/// runs once more, printing the first run's loss, and must then be exact. Meant for release
+/// builds, as CI runs it: a debug build cannot keep up with 640x480 in real time.
 #[test]
 fn aestream_receives_every_event_of_the_default_daemon() {
     let py = python_or_skip!("aestream_receives_every_event_of_the_default_daemon");
     let _one_at_a_time = one_at_a_time();
     let dir = temp_dir("aestream");
-    for (w, h, allowed_loss) in [(346u16, 260u16, "0"), (640, 480, "0.005")] {
+    for (w, h) in [(346u16, 260u16), (640, 480)] {
         let size = format!("{w}x{h}");
-        let expected = dir.join(format!("convert-{size}.csv"));
-        // Linear interpolation on both sides: under `block` a 640x480 stream with the flow
-        // falls behind real time on 2 cores, and its late events leave in bursts (the motion
-        // model's live behaviour is the cap keeper's, tested in `stage1::motion`).
-        let out = Command::new(env!("CARGO_BIN_EXE_v2ce"))
-            .args([
-                "convert", "fixture", "--size", &size, "--motion", "linear", "-o",
-            ])
-            .arg(&expected)
-            .output()
-            .unwrap();
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        let port = common::free_udp_port();
-        let mut receiver = start_receiver(
-            &py,
-            &[
-                "aestream".into(),
-                port.to_string(),
-                expected.display().to_string(),
-                w.to_string(),
-                h.to_string(),
-                allowed_loss.into(),
-            ],
-        );
-        let run = Command::new(env!("CARGO_BIN_EXE_v2ce"))
-            // Blocking queues: on a loaded CI machine a dropped frame would look like loss at
-            // the receiver (with the default drop-oldest, every event arrived here too; README).
-            .args(["run", "--source", "fixture", "--size", &size, "--json"])
-            .args(["--motion", "linear"])
-            .args(["--queue-policy", "block"])
-            .args(["--udp", &format!("127.0.0.1:{port}")])
-            .output()
-            .unwrap();
-        assert!(
-            run.status.success(),
-            "{}",
-            String::from_utf8_lossy(&run.stderr)
-        );
-        let report: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
-        let status = receiver.wait().unwrap();
-        assert!(
-            status.success(),
-            "{size}: aestream did not get every event; daemon: frames dropped {}, sink {}",
-            report["stats"]["frames_dropped"],
-            report["stats"]["sinks"][0]["stats"]
-        );
+        let attempt = |n: usize| -> Result<String, String> {
+            let recorded = dir.join(format!("recorded-{size}-{n}.csv"));
+            let port = common::free_udp_port();
+            let mut receiver = start_receiver(
+                &py,
+                &[
+                    "aestream".into(),
+                    port.to_string(),
+                    recorded.display().to_string(),
+                    w.to_string(),
+                    h.to_string(),
+                ],
+            );
+            let run = Command::new(env!("CARGO_BIN_EXE_v2ce"))
+                .args(["run", "--source", "fixture", "--size", &size, "--json"])
+                .args(["--udp", &format!("127.0.0.1:{port}")])
+                .arg("--out")
+                .arg(&recorded)
+                .output()
+                .unwrap();
+            assert!(
+                run.status.success(),
+                "{}",
+                String::from_utf8_lossy(&run.stderr)
+            );
+            let report: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
+            let sinks = report["stats"]["sinks"].as_array().unwrap();
+            let udp = sinks
+                .iter()
+                .find(|s| s["recording"] == false)
+                .unwrap_or_else(|| panic!("no UDP output in {report}"));
+            let file = sinks.iter().find(|s| s["recording"] == true).unwrap();
+            // The recording holds exactly what the UDP output sent.
+            assert_eq!(
+                udp["stats"]["events_sent"], file["stats"]["events_sent"],
+                "{report}"
+            );
+            assert_eq!(udp["stats"]["events_dropped"], 0, "{report}");
+            let status = receiver.wait().unwrap();
+            let summary = format!(
+                "frames {} (dropped {}), udp {}",
+                report["stats"]["frames_in"], report["stats"]["frames_dropped"], udp["stats"]
+            );
+            if status.success() {
+                Ok(summary)
+            } else {
+                Err(summary)
+            }
+        };
+        match attempt(1) {
+            Ok(summary) => eprintln!("{size}: aestream got every event at once; {summary}"),
+            Err(first) => {
+                eprintln!("{size}: aestream missed events in the first run ({first}); once more");
+                let second = attempt(2);
+                assert!(
+                    second.is_ok(),
+                    "{size}: aestream did not get every event twice: {first}; {second:?}"
+                );
+            }
+        }
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }

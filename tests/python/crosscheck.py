@@ -13,7 +13,8 @@ environment; each mode compares what a third-party reader gets with an expected 
     crosscheck.py udp FORMAT PORT EXPECTED.csv WIDTH HEIGHT    FORMAT: t64_x16_y16_on8 |
                                                                t32_x16_y15_on1 | spif
     crosscheck.py tcp PORT EXPECTED.csv
-    crosscheck.py aestream PORT EXPECTED.csv WIDTH HEIGHT     aestream's UDP receiver (spif)
+    crosscheck.py aestream PORT EXPECTED.csv WIDTH HEIGHT [LOSS]   aestream's UDP receiver (spif);
+                                                               EXPECTED may be written later
 
 `udp` and `tcp` print READY once listening (udp) or connected (tcp).
 """
@@ -256,24 +257,25 @@ def tcp(port, want):
     return compare(got, want, "dv_processing NetworkReader over TCP")
 
 
-def aestream_udp(port, want, width, height, allowed_loss=0.0):
+def aestream_udp(port, want_path, width, height, allowed_loss=0.0):
     """aestream's UDP receiver (its C++ socket reads 512 bytes per datagram) accumulating
     per-pixel counts, as its PyTorch/Norse/snnTorch users get them, against the expected
     events' per-pixel counts (all polarities). `allowed_loss` is the fraction of events that may
     be missing in all (datagrams the kernel dropped when the receiving thread got no core); no
-    pixel may ever get more events than expected."""
+    pixel may ever get more events than expected. When `want_path` does not exist yet (the
+    sender's own recording of what it sends), the stream is read until it has been quiet for
+    3 s and the file is read then."""
     import time
 
     import aestream
 
     watchdog(120, "aestream udp")
-    expect = np.zeros((width, height), np.int64)
-    np.add.at(expect, (want[:, 1], want[:, 2]), 1)
+    want = expected(want_path) if os.path.exists(want_path) else None
     got = np.zeros((width, height), np.int64)
     last = None
     with aestream.UDPInput((width, height), device="cpu", port=port) as stream:
         print("READY", flush=True)
-        while got.sum() < len(want):
+        while want is None or got.sum() < len(want):
             frame = np.asarray(stream.read()).astype(np.int64)
             if frame.sum():
                 got += frame
@@ -281,6 +283,10 @@ def aestream_udp(port, want, width, height, allowed_loss=0.0):
             elif last is not None and time.monotonic() - last > 3:
                 break
             time.sleep(0.002)
+    if want is None:
+        want = expected(want_path)
+    expect = np.zeros((width, height), np.int64)
+    np.add.at(expect, (want[:, 1], want[:, 2]), 1)
     if np.array_equal(got, expect):
         print(f"OK aestream: {got.sum()} of {len(want)} events, every pixel's count identical")
         return 0
@@ -334,8 +340,7 @@ def main(argv):
         return udp(argv[2], int(argv[3]), expected(argv[4]), int(argv[5]), int(argv[6]))
     if mode == "aestream":
         allowed_loss = float(argv[6]) if len(argv) > 6 else 0.0
-        return aestream_udp(int(argv[2]), expected(argv[3]), int(argv[4]), int(argv[5]),
-                            allowed_loss)
+        return aestream_udp(int(argv[2]), argv[3], int(argv[4]), int(argv[5]), allowed_loss)
     if mode == "tcp":
         return tcp(int(argv[2]), expected(argv[3]))
     print(f"unknown mode {mode}")
