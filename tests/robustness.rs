@@ -717,6 +717,162 @@ fn cases(dir: &Path) -> Vec<Case> {
             });
         }
     }
+    cases.extend(sizes_and_times(dir, &mut rng));
+    cases
+}
+
+/// A value drawn from the edges and the inside of `0..=max`.
+fn edgy(rng: &mut Rng, max: u64) -> u64 {
+    match rng.below(5) {
+        0 => 0,
+        1 => 1,
+        2 => max,
+        3 => max / 2 + rng.next() % 3,
+        _ => rng.next() % max.saturating_add(1).max(1),
+    }
+}
+
+/// The inputs that size memory or span time, drawn at random (issue 25): sensor sizes claimed
+/// by a RAW header through `render`, `info` and `transcode`; shard counts up to 2^32 through
+/// `batch`; tensor shapes claimed by a `.npy` header through `model run`; event times anywhere in
+/// i64 through the EVT 2.0, EVT 3.0 and HDF5 writers; two file outputs on one path.
+fn sizes_and_times(dir: &Path, rng: &mut Rng) -> Vec<Case> {
+    let mut cases = Vec::new();
+    for i in 0..24 {
+        let (w, h) = (edgy(rng, 65535), edgy(rng, 65535));
+        let file = format!("geom{i}.raw");
+        let evt = if i % 2 == 0 { "2.0" } else { "3.0" };
+        let mut bytes = format!("% evt {evt}\n% geometry {w}x{h}\n% end\n").into_bytes();
+        bytes.extend((0..64).map(|_| rng.next() as u8));
+        std::fs::write(dir.join(&file), bytes).unwrap();
+        let args = match i % 3 {
+            0 => strings(&["render", &file, "-o", &format!("geom{i}.png")]),
+            1 => strings(&["info", &file]),
+            _ => strings(&["transcode", &file, &format!("geom{i}.csv")]),
+        };
+        cases.push(Case {
+            name: format!("{} of a {w}x{h} RAW header", args[0]),
+            args,
+            check_output: None,
+        });
+    }
+    std::fs::write(dir.join("shard.y4m"), y4m(16, 12, 3)).unwrap();
+    std::fs::write(dir.join("shard.txt"), "shard.y4m\n").unwrap();
+    for i in 0..16 {
+        let n = edgy(rng, u64::from(u32::MAX) + 1);
+        let index = if i % 4 == 0 {
+            n
+        } else {
+            edgy(rng, n.saturating_sub(1))
+        };
+        cases.push(Case {
+            name: format!("batch --shard {index}/{n}"),
+            args: strings(&[
+                "batch",
+                "shard.txt",
+                "-o",
+                &format!("shards{i}"),
+                "--shard",
+                &format!("{index}/{n}"),
+            ]),
+            check_output: None,
+        });
+    }
+    for i in 0..16 {
+        let dims: Vec<u64> = (0..5)
+            .map(|d| if d == 2 { 2 } else { edgy(rng, 1 << 33) })
+            .collect();
+        let shape = format!(
+            "({})",
+            dims.iter()
+                .map(|d| d.to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+        let mut dict = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape}, }}");
+        while (10 + dict.len() + 1) % 64 != 0 {
+            dict.push(' ');
+        }
+        dict.push('\n');
+        let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
+        bytes.extend((dict.len() as u16).to_le_bytes());
+        bytes.extend(dict.as_bytes());
+        bytes.extend((0..rng.below(4096)).map(|_| 0u8));
+        let file = format!("shape{i}.npy");
+        std::fs::write(dir.join(&file), bytes).unwrap();
+        cases.push(Case {
+            name: format!("model run on a .npy claiming {shape}"),
+            args: strings(&[
+                "model",
+                "run",
+                "absent.onnx",
+                "--input-npy",
+                &file,
+                "--output-npy",
+                &format!("shape{i}-out.npy"),
+            ]),
+            check_output: None,
+        });
+    }
+    for i in 0..18 {
+        let mut t: Vec<i64> = (0..3)
+            .map(|_| match rng.below(4) {
+                0 => i64::MIN + rng.below(1000) as i64,
+                1 => i64::MAX - rng.below(1000) as i64,
+                2 => rng.next() as i64 - (1 << 40),
+                _ => rng.next() as i64,
+            })
+            .collect();
+        t.sort();
+        let csv: String = std::iter::once("t_us,x,y,on\n".to_string())
+            .chain(t.iter().map(|t| format!("{t},1,1,1\n")))
+            .collect();
+        let file = format!("times{i}.csv");
+        std::fs::write(dir.join(&file), csv).unwrap();
+        let (out, extra): (String, &[&str]) = match i % 3 {
+            0 => (format!("times{i}.raw"), &["--evt", "2"]),
+            1 => (format!("times{i}.raw"), &["--evt", "3"]),
+            _ => (format!("times{i}.h5"), &[]),
+        };
+        let mut args = strings(&["transcode", &file, &out, "--size", "8x8"]);
+        args.extend(strings(extra));
+        cases.push(Case {
+            name: format!("transcode times {t:?} to {out}"),
+            args,
+            check_output: Some(out),
+        });
+    }
+    for (i, (a, b)) in [
+        ("same.csv", "same.csv"),
+        ("same.csv", "./same.csv"),
+        ("d/same.aedat4", "d/../d/same.aedat4"),
+    ]
+    .iter()
+    .enumerate()
+    {
+        std::fs::create_dir_all(dir.join("d")).unwrap();
+        let file = format!("same{i}.toml");
+        std::fs::write(
+            dir.join(&file),
+            format!("[[sink]]\ntype = \"file\"\npath = \"{b}\"\n"),
+        )
+        .unwrap();
+        cases.push(Case {
+            name: format!("run --out {a} and a [[sink]] file {b}"),
+            args: strings(&[
+                "run",
+                "--config",
+                &file,
+                "--source",
+                "shard.y4m",
+                "--udp",
+                "",
+                "--out",
+                a,
+            ]),
+            check_output: None,
+        });
+    }
     cases
 }
 
