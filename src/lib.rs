@@ -22,7 +22,7 @@ pub mod format;
 pub mod frame;
 pub(crate) mod http;
 pub mod interval;
-pub(crate) mod limits;
+pub mod limits;
 pub(crate) mod listen;
 pub mod metrics;
 pub mod model;

@@ -715,28 +715,20 @@ fn stage2_stage(
 ) {
     while let Some(item) = rx.recv() {
         let end = item.batch.end();
-        let events = match item.batch {
-            Stage1Batch::Events { events, .. } => events,
-            Stage1Batch::Voxels(grid, interval) => {
-                let mut out = Vec::new();
-                let r = sampler.sample(&grid, interval, &mut out);
-                if r.any() {
-                    let mut total = repaired.lock().unwrap_or_else(|e| e.into_inner());
-                    if !total.any() {
-                        tracing::warn!(
-                            "Stage 2 repaired voxel values from Stage 1 ({} non-finite, {} \
-                             negative, {} clamped in the interval at {} us); counted in the report",
-                            r.nonfinite,
-                            r.negative,
-                            r.clamped,
-                            interval.start()
-                        );
-                    }
-                    total.add(r);
-                }
-                out
+        let (events, r) = crate::stage2::events_of(item.batch, sampler.as_ref());
+        if r.any() {
+            let mut total = repaired.lock().unwrap_or_else(|e| e.into_inner());
+            if !total.any() {
+                tracing::warn!(
+                    "Stage 2 repaired voxel values from Stage 1 ({} non-finite, {} negative, {} \
+                     clamped in the interval ending at {end} us); counted in the report",
+                    r.nonfinite,
+                    r.negative,
+                    r.clamped,
+                );
             }
-        };
+            total.add(r);
+        }
         ctx.counters
             .events_out
             .fetch_add(events.len() as u64, Ordering::Relaxed);

@@ -215,6 +215,23 @@ impl std::str::FromStr for SamplerKind {
     }
 }
 
+/// The events of one Stage 1 batch: events as they are, voxels re-timed by `sampler`; with
+/// what the sampler had to repair. The one place Stage 1's output becomes events, for the
+/// pipeline and the streaming API alike.
+pub fn events_of(
+    batch: crate::stage1::Stage1Batch,
+    sampler: &dyn Sampler,
+) -> (Vec<crate::event::Event>, SampleStats) {
+    match batch {
+        crate::stage1::Stage1Batch::Events { events, .. } => (events, SampleStats::default()),
+        crate::stage1::Stage1Batch::Voxels(grid, interval) => {
+            let mut out = Vec::new();
+            let repaired = sampler.sample(&grid, interval, &mut out);
+            (out, repaired)
+        }
+    }
+}
+
 /// Copies `values` into `out`, replacing NaN/Inf and negative values by 0 and clamping values
 /// above [`MAX_NODE_VALUE`], and counts each repair.
 pub fn sanitize(values: &[f64], out: &mut [f64]) -> SampleStats {

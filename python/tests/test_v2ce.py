@@ -1,0 +1,231 @@
+"""The Python package against the command line, tonic, and bad input.
+
+Run by .ci/run after `pip install ./python` into the project's venv: `pytest python/tests`. The
+CLI is `V2CE_BIN`, else the repository's `target/release/v2ce` (built by the Rust tests).
+"""
+
+import os
+import signal
+import struct
+import subprocess
+import sys
+import time
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import v2ce
+
+ROOT = Path(__file__).resolve().parents[2]
+CLI = Path(os.environ.get("V2CE_BIN", ROOT / "target" / "release" / "v2ce"))
+
+
+def cli(*args, cwd=None):
+    if not CLI.exists():
+        pytest.fail(f"no v2ce binary at {CLI} (cargo build --release, or set V2CE_BIN)")
+    out = subprocess.run([str(CLI), *map(str, args)], cwd=cwd, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    return out
+
+
+def same(a, b):
+    assert len(a) == len(b), (len(a), len(b))
+    for f in ("t", "x", "y"):
+        assert np.array_equal(a[f].astype(np.int64), b[f].astype(np.int64)), f
+    assert np.array_equal(a["p"] > 0, b["p"] > 0), "p"
+
+
+def moving_bar(n=12, h=48, w=64):
+    """Gray uint8 frames of a bright bar moving right over a dark background."""
+    frames = np.full((n, h, w), 30, np.uint8)
+    for k in range(n):
+        x0 = 4 + 3 * k
+        frames[k, :, x0 : x0 + 8] = 220
+    return frames
+
+
+def write_png(path, gray):
+    """A minimal 8-bit grayscale PNG (no imaging library needed)."""
+    h, w = gray.shape
+    raw = b"".join(b"\x00" + gray[r].tobytes() for r in range(h))
+
+    def chunk(kind, data):
+        body = kind + data
+        return struct.pack(">I", len(data)) + body + struct.pack(">I", zlib.crc32(body))
+
+    png = b"\x89PNG\r\n\x1a\n"
+    png += chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0))
+    png += chunk(b"IDAT", zlib.compress(raw))
+    png += chunk(b"IEND", b"")
+    path.write_bytes(png)
+
+
+def test_convert_of_a_path_is_the_cli_event_for_event(tmp_path):
+    cli("convert", "fixture", "--max-frames", "12", "--seed", "5", "-o", tmp_path / "cli.csv")
+    want = v2ce.read(tmp_path / "cli.csv")
+    got = v2ce.convert("fixture", max_frames=12, seed=5)
+    assert len(got) > 10_000
+    same(got, want)
+    assert v2ce.size_of(got) == (640, 480)
+    # Another seed, other events (the seed reaches mismatch and noise).
+    other = v2ce.convert("fixture", max_frames=12, seed=6)
+    assert len(other) != len(got) or not np.array_equal(other["t"], got["t"])
+
+
+def test_numpy_frames_are_the_cli_on_the_same_images(tmp_path):
+    frames = moving_bar()
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for k, f in enumerate(frames):
+        write_png(folder / f"{k:03d}.png", f)
+    cli("convert", folder, "--fps", "100", "--color", "srgb", "--seed", "3",
+        "-o", tmp_path / "cli.aedat4")
+    want = v2ce.read(tmp_path / "cli.aedat4")
+    times = np.arange(len(frames), dtype=np.int64) * 10_000
+    got = v2ce.convert(frames, times_us=times, seed=3)
+    assert len(got) > 100
+    same(got, want)
+    # A non-contiguous view is copied once and gives the same.
+    wide = np.ascontiguousarray(np.repeat(frames, 2, axis=2))[:, :, ::2]
+    same(v2ce.convert(wide, times_us=times, seed=3), got)
+
+
+def test_the_streaming_simulator_equals_convert():
+    frames = moving_bar(n=15)
+    times = np.arange(len(frames), dtype=np.int64) * 33_333
+    whole = v2ce.convert(frames, times_us=times, seed=9, motion="linear")
+    sim = v2ce.Simulator(64, 48, seed=9, motion="linear")
+    parts = [sim.push(f, t) for f, t in zip(frames, times)] + [sim.finish()]
+    assert len(parts[0]) == 0  # the first frame only sets the pixels
+    same(np.concatenate(parts), whole)
+    with pytest.raises(ValueError, match="after finish"):
+        sim.push(frames[0], 10**9)
+
+
+def test_every_format_round_trips_and_reads_like_the_cli(tmp_path):
+    events = v2ce.convert(moving_bar(), times_us=np.arange(12, dtype=np.int64) * 10_000)
+    size = v2ce.size_of(events)
+    assert size == (64, 48)
+    for name, kwargs in [
+        ("e.aedat4", {}),
+        ("e2.raw", {"evt": 2}),
+        ("e3.raw", {"evt": 3}),
+        ("e.csv", {}),
+        ("e.npz", {}),
+        ("e.h5", {}),
+    ]:
+        path = tmp_path / name
+        v2ce.write(path, events, size, **kwargs)
+        back = v2ce.read(path)
+        same(back, events)
+        # In chunks, as for files larger than memory.
+        reader = v2ce.open(path)
+        chunks = list(reader.chunks(100))
+        assert len(chunks) > 1
+        same(np.concatenate(chunks), events)
+        # The CLI reads what we write.
+        cli("transcode", path, tmp_path / f"{name}.csv")
+        same(v2ce.read(tmp_path / f"{name}.csv"), events)
+    assert not list(tmp_path.glob("*.partial.*"))
+
+
+def test_tonic_transforms_take_the_arrays_unchanged():
+    tonic = pytest.importorskip("tonic", reason="tonic is not installed (pip install tonic)")
+    events = v2ce.convert("fixture", max_frames=6)
+    w, h = v2ce.size_of(events)
+    # The same values in tonic's own layout (its events_struct), for reference; and with an
+    # integer p, as tonic's datasets have it (its ToVoxelGrid rewrites OFF as -1 in place, which a
+    # bool p turns into ON).
+    own = tonic.io.make_structured_array(
+        events["x"], events["y"], events["t"], (events["p"] > 0).astype(int)
+    )
+    ints = tonic.io.make_structured_array(
+        events["x"], events["y"], events["t"], (events["p"] > 0).astype(int),
+        dtype=np.dtype([("x", int), ("y", int), ("t", int), ("p", int)]),
+    )
+    sensor = (w, h, 2)
+    frames = tonic.transforms.ToFrame(sensor_size=sensor, n_time_bins=4)(events)
+    assert frames.shape == (4, 2, h, w)
+    assert frames.sum() >= 0.99 * len(events)
+    assert np.array_equal(frames, tonic.transforms.ToFrame(sensor_size=sensor, n_time_bins=4)(own))
+    voxels = tonic.transforms.ToVoxelGrid(sensor_size=sensor, n_time_bins=5)(events.copy())
+    assert voxels.shape == (5, 1, h, w)
+    assert np.isfinite(voxels).all() and np.abs(voxels).sum() > 0
+    assert np.array_equal(
+        voxels, tonic.transforms.ToVoxelGrid(sensor_size=sensor, n_time_bins=5)(ints)
+    )
+    denoised = tonic.transforms.Denoise(filter_time=10_000)(events)
+    assert 0 < len(denoised) <= len(events)
+    assert len(denoised) == len(tonic.transforms.Denoise(filter_time=10_000)(own))
+
+
+def test_bad_input_raises_the_cli_message():
+    frames = moving_bar(n=3)
+    times = np.array([0, 10_000, 20_000], np.int64)
+    with pytest.raises(ValueError, match="dtype"):
+        v2ce.convert(frames.astype(np.int32), times_us=times)
+    with pytest.raises(ValueError, match="dimensions"):
+        v2ce.convert(frames[0], times_us=times[:1])
+    with pytest.raises(ValueError, match="increase"):
+        v2ce.convert(frames, times_us=np.array([0, 20_000, 10_000], np.int64))
+    with pytest.raises(ValueError, match="times_us has 2 values"):
+        v2ce.convert(frames, times_us=times[:2])
+    with pytest.raises(ValueError, match="times_us"):
+        v2ce.convert(frames)
+    nan = frames.astype(np.float32) / 255
+    nan[1, 5, 5] = np.nan
+    with pytest.raises(ValueError, match="(?i)nan"):
+        v2ce.convert(nan, times_us=times)
+    with pytest.raises(OSError, match="no-such-video"):
+        v2ce.convert("no-such-video.mp4")
+    with pytest.raises(ValueError, match="hubble"):
+        v2ce.convert(frames, times_us=times, preset="hubble")
+    with pytest.raises(ValueError, match="not_a_key"):
+        v2ce.convert(frames, times_us=times, not_a_key=1)
+    with pytest.raises(ValueError):
+        v2ce.convert(frames, times_us=times, max_subframes=-3)
+    sim = v2ce.Simulator(64, 48)
+    sim.push(frames[0], 0)
+    with pytest.raises(ValueError, match="does not come after"):
+        sim.push(frames[1], 0)
+    with pytest.raises(ValueError, match="shape"):
+        sim.push(frames[1][:10], 50_000)
+    with pytest.raises(ValueError):
+        v2ce.Simulator(0, 48)
+    with pytest.raises(ValueError, match="fields"):
+        v2ce.write("x.csv", np.zeros(3, [("timestamp", "i8"), ("x", "u2")]), (4, 4))
+    with pytest.raises(OSError):
+        v2ce.read("/nonexistent/events.aedat4")
+
+
+def test_float_and_16_bit_frames_are_linear_light():
+    frames = moving_bar(n=6)
+    times = np.arange(6, dtype=np.int64) * 10_000
+    as_u16 = v2ce.convert((frames.astype(np.uint16) * 257), times_us=times)
+    as_f32 = v2ce.convert(frames.astype(np.float32) / 255, times_us=times)
+    as_u8 = v2ce.convert(frames, times_us=times, linear=True)
+    same(as_u16, as_u8)
+    same(as_f32, as_u8)
+
+
+def test_ctrl_c_interrupts_a_long_convert():
+    code = (
+        "import sys, v2ce\n"
+        "print('started', flush=True)\n"
+        "try:\n"
+        "    v2ce.convert('fixture', size=(1280, 720))\n"
+        "except KeyboardInterrupt:\n"
+        "    print('interrupted', flush=True)\n"
+        "    sys.exit(3)\n"
+    )
+    child = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    assert child.stdout.readline().strip() == "started"
+    time.sleep(1.5)
+    sent = time.monotonic()
+    child.send_signal(signal.SIGINT)
+    out, _ = child.communicate(timeout=30)
+    assert child.returncode == 3, out
+    assert "interrupted" in out
+    assert time.monotonic() - sent < 10
