@@ -74,6 +74,24 @@ def test_convert_of_a_path_is_the_cli_event_for_event(tmp_path):
     assert len(other) != len(got) or not np.array_equal(other["t"], got["t"])
 
 
+def shared_data():
+    """../shared/data (V2CE_DATA to override), or a skip that says why."""
+    d = Path(os.environ.get("V2CE_DATA", ROOT.parent / "shared" / "data"))
+    if not d.is_dir():
+        pytest.skip(f"SKIPPED: no recordings at {d} (see docs/testing.md)")
+    return d
+
+
+def test_the_davis346_aps_frames_give_the_cli_events(tmp_path):
+    clip = shared_data() / "davis346" / "davis346.aedat4"
+    cli("convert", clip, "--seed", "2", "--max-frames", "40", "-o", tmp_path / "cli.aedat4")
+    want = v2ce.read(tmp_path / "cli.aedat4")
+    got = v2ce.convert(clip, seed=2, max_frames=40)
+    assert len(got) > 1000
+    same(got, want)
+    assert v2ce.size_of(got) == (346, 260)
+
+
 def test_numpy_frames_are_the_cli_on_the_same_images(tmp_path):
     frames = moving_bar()
     folder = tmp_path / "frames"
