@@ -83,6 +83,20 @@ pub struct Stage1Report {
     pub timing: Stage2Metrics,
 }
 
+impl Stage1Report {
+    /// The report as `v2ce eval stage1 --json` prints it: the voxel scores, the count ratio and
+    /// the timestamp metrics in one object.
+    pub fn to_json(&self) -> serde_json::Value {
+        let (m, t) = (self.voxels, self.timing);
+        let mut v = serde_json::to_value(m).unwrap_or_default();
+        v["count_ratio"] = m.count_ratio().into();
+        v["c_mete_us"] = t.c_mete_us.into();
+        v["mete_us"] = t.mete_us.into();
+        v["pger"] = t.pger.into();
+        v
+    }
+}
+
 /// Scores `sim` against `real` (both sorted by time) on `intervals` for a sensor of `size`:
 /// both voxelized with [`DEFAULT_BINS`] nodes per interval and compared, and the Stage 2
 /// timestamp metrics of `sim`'s events against `real`'s in each interval.

@@ -15,7 +15,7 @@ use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
-use numpy::{PyArray1, PyReadonlyArray1, PyUntypedArray};
+use numpy::{PyArray1, PyArrayMethods, PyReadonlyArray1, PyUntypedArray, PyUntypedArrayMethods};
 use pyo3::exceptions::{PyKeyboardInterrupt, PyOSError, PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::{PyBool, PyDict, PyFloat, PyInt, PyList, PyString};
@@ -494,6 +494,205 @@ fn write(
     })
 }
 
+/// Event columns as the library's events (`p != 0` is ON), checked to be in time order.
+fn events_of_columns(
+    t: &[i64],
+    x: &[u16],
+    y: &[u16],
+    p: &[u8],
+    what: &str,
+) -> PyResult<Vec<Event>> {
+    if x.len() != t.len() || y.len() != t.len() || p.len() != t.len() {
+        return Err(PyValueError::new_err(format!(
+            "{what}: t, x, y and p differ in length"
+        )));
+    }
+    if let Some(k) = t.windows(2).position(|w| w[1] < w[0]) {
+        return Err(PyValueError::new_err(format!(
+            "{what}: not sorted by time (event {} at {} us comes after {} us)",
+            k + 1,
+            t[k + 1],
+            t[k]
+        )));
+    }
+    Ok((0..t.len())
+        .map(|i| Event::new(t[i], x[i], y[i], p[i] != 0))
+        .collect())
+}
+
+/// Frame times as intervals, as the CLI makes them.
+fn intervals(frame_times_us: &[i64]) -> PyResult<Vec<v2ce::Interval>> {
+    v2ce::interval::intervals_from_frames(frame_times_us)
+        .map_err(|e| PyValueError::new_err(format!("frame_times_us: {e}")))
+}
+
+/// Events given as columns.
+type Columns<'py> = (
+    PyReadonlyArray1<'py, i64>,
+    PyReadonlyArray1<'py, u16>,
+    PyReadonlyArray1<'py, u16>,
+    PyReadonlyArray1<'py, u8>,
+);
+
+fn events_arg(c: &Columns<'_>, what: &str) -> PyResult<Vec<Event>> {
+    events_of_columns(
+        c.0.as_slice()?,
+        c.1.as_slice()?,
+        c.2.as_slice()?,
+        c.3.as_slice()?,
+        what,
+    )
+}
+
+/// Each interval's voxel grid as a dense float32 tensor `(intervals, 2 * bins, H, W)` in V2CE's
+/// layout (channel = polarity * bins + node, ON first), as `convert --write-voxels` writes it.
+#[pyfunction]
+#[pyo3(signature = (events, frame_times_us, width, height, bins=10))]
+fn voxelize<'py>(
+    py: Python<'py>,
+    events: Columns<'py>,
+    frame_times_us: PyReadonlyArray1<'py, i64>,
+    width: u16,
+    height: u16,
+    bins: usize,
+) -> PyResult<Bound<'py, numpy::PyArray4<f32>>> {
+    guarded("voxelize", || {
+        let events = events_arg(&events, "events")?;
+        let intervals = intervals(frame_times_us.as_slice()?)?;
+        let per = 2 * bins * width as usize * height as usize;
+        let bytes = (per as u64)
+            .saturating_mul(intervals.len() as u64)
+            .saturating_mul(4);
+        v2ce::limits::memory("voxelize", bytes, "the voxel tensor").map_err(py_err)?;
+        let dense = py
+            .detach(|| -> v2ce::Result<Vec<f32>> {
+                let mut v = v2ce::Voxelizer::new(width, height, bins)?;
+                let mut out = Vec::with_capacity(per * intervals.len());
+                for iv in &intervals {
+                    let slice = v2ce::event::time_slice(&events, iv.start(), iv.end());
+                    out.extend(v.voxelize(slice, *iv)?.to_dense());
+                }
+                Ok(out)
+            })
+            .map_err(py_err)?;
+        let shape = [intervals.len(), 2 * bins, height as usize, width as usize];
+        numpy::PyArray1::from_vec(py, dense)
+            .reshape(shape)
+            .map_err(|e| PyRuntimeError::new_err(e.to_string()))
+    })
+}
+
+/// Events re-timed from voxels `(intervals, 2 * bins, H, W)` by a Stage 2 sampler.
+#[pyfunction]
+#[pyo3(signature = (voxels, frame_times_us, sampler="moment", seed=0))]
+fn sample<'py>(
+    py: Python<'py>,
+    voxels: numpy::PyReadonlyArray4<'py, f32>,
+    frame_times_us: PyReadonlyArray1<'py, i64>,
+    sampler: &str,
+    seed: u64,
+) -> PyResult<Bound<'py, PyArray1<u8>>> {
+    guarded("sample", || {
+        let shape = voxels.shape().to_vec();
+        let (k, c2, h, w) = (shape[0], shape[1], shape[2], shape[3]);
+        let intervals = intervals(frame_times_us.as_slice()?)?;
+        if intervals.len() != k {
+            return Err(PyValueError::new_err(format!(
+                "{k} voxel grids for {} frame intervals ({} frame times)",
+                intervals.len(),
+                intervals.len() + 1
+            )));
+        }
+        if c2 % 2 != 0 || c2 < 4 {
+            return Err(PyValueError::new_err(format!(
+                "{c2} channels: expected 2 x bins (ON then OFF), bins >= 2"
+            )));
+        }
+        let fit = |v: usize| u32::try_from(v).unwrap_or(u32::MAX);
+        v2ce::limits::frame_size("voxels", fit(w), fit(h)).map_err(py_err)?;
+        let kind: v2ce::SamplerKind = sampler.parse().map_err(py_err)?;
+        let data = voxels
+            .as_slice()
+            .map_err(|_| PyValueError::new_err("voxels: not C-contiguous"))?;
+        let bytes = py
+            .detach(|| -> v2ce::Result<Vec<u8>> {
+                let s = kind.build(seed);
+                let per = c2 * h * w;
+                let mut out = Vec::new();
+                for (i, iv) in intervals.iter().enumerate() {
+                    let grid = v2ce::VoxelGrid::from_dense(
+                        w as u16,
+                        h as u16,
+                        c2 / 2,
+                        &data[i * per..(i + 1) * per],
+                    )?;
+                    let mut events = Vec::new();
+                    s.sample(&grid, *iv, &mut events);
+                    out.extend(events);
+                }
+                Ok(pack(&out))
+            })
+            .map_err(py_err)?;
+        Ok(records(py, bytes))
+    })
+}
+
+/// `v2ce eval stage1`'s scores of `sim` against `real` on the frame intervals, as JSON.
+#[pyfunction]
+fn eval_stage1(
+    py: Python<'_>,
+    real: Columns<'_>,
+    sim: Columns<'_>,
+    frame_times_us: PyReadonlyArray1<'_, i64>,
+    width: u16,
+    height: u16,
+) -> PyResult<String> {
+    guarded("eval_stage1", || {
+        let real = events_arg(&real, "real")?;
+        let sim = events_arg(&sim, "sim")?;
+        let intervals = intervals(frame_times_us.as_slice()?)?;
+        let size = (width, height);
+        py.detach(|| -> v2ce::Result<String> {
+            v2ce::eval::check_sensor(&real, size, std::path::Path::new("real"))?;
+            v2ce::eval::check_sensor(&sim, size, std::path::Path::new("sim"))?;
+            Ok(v2ce::eval::stage1(&real, &sim, &intervals, size)?
+                .to_json()
+                .to_string())
+        })
+        .map_err(py_err)
+    })
+}
+
+/// `v2ce eval stage2`'s scores: `events` voxelized per frame interval, re-timed by the sampler
+/// and compared with themselves, as JSON.
+#[pyfunction]
+#[pyo3(signature = (events, frame_times_us, width, height, sampler="moment", bins=10, seed=0))]
+#[allow(clippy::too_many_arguments)]
+fn eval_stage2(
+    py: Python<'_>,
+    events: Columns<'_>,
+    frame_times_us: PyReadonlyArray1<'_, i64>,
+    width: u16,
+    height: u16,
+    sampler: &str,
+    bins: usize,
+    seed: u64,
+) -> PyResult<String> {
+    guarded("eval_stage2", || {
+        let events = events_arg(&events, "events")?;
+        let intervals = intervals(frame_times_us.as_slice()?)?;
+        let kind: v2ce::SamplerKind = sampler.parse().map_err(py_err)?;
+        py.detach(|| -> v2ce::Result<String> {
+            v2ce::eval::check_sensor(&events, (width, height), std::path::Path::new("events"))?;
+            let recording = v2ce::format::Recording::new(events, Some((width, height)));
+            let s = kind.build(seed);
+            let report = v2ce::eval::stage2(&recording, &intervals, bins, s.as_ref(), |_| Ok(()))?;
+            serde_json::to_string(&report).map_err(|e| Error::invalid("report", e.to_string()))
+        })
+        .map_err(py_err)
+    })
+}
+
 /// An event file read a chunk at a time.
 #[pyclass(module = "v2ce._v2ce")]
 struct Reader {
@@ -558,6 +757,10 @@ fn _v2ce(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(read, m)?)?;
     m.add_function(wrap_pyfunction!(write, m)?)?;
     m.add_function(wrap_pyfunction!(version, m)?)?;
+    m.add_function(wrap_pyfunction!(voxelize, m)?)?;
+    m.add_function(wrap_pyfunction!(sample, m)?)?;
+    m.add_function(wrap_pyfunction!(eval_stage1, m)?)?;
+    m.add_function(wrap_pyfunction!(eval_stage2, m)?)?;
     m.add_class::<Simulator>()?;
     m.add_class::<Reader>()?;
     m.add("RECORD_BYTES", RECORD)?;

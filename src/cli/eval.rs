@@ -123,12 +123,7 @@ pub fn eval_stage1(args: Stage1Args) -> Result<()> {
     let (m, t) = (report.voxels, report.timing);
     let mut out = std::io::stdout().lock();
     let text = if args.json {
-        let mut v = serde_json::to_value(m).map_err(|e| Error::invalid("json", e.to_string()))?;
-        v["count_ratio"] = m.count_ratio().into();
-        v["c_mete_us"] = t.c_mete_us.into();
-        v["mete_us"] = t.mete_us.into();
-        v["pger"] = t.pger.into();
-        v.to_string()
+        report.to_json().to_string()
     } else {
         format!(
             "intervals {} ({} chunks); real events {}, simulated {} (ratio {:.3})\n\

@@ -16,6 +16,7 @@ and gives the same events as the ``v2ce`` command for the same frames, settings 
 
 from __future__ import annotations
 
+import json
 import os
 from typing import Iterator, Optional, Tuple, Union
 
@@ -28,9 +29,13 @@ __all__ = [
     "Reader",
     "Simulator",
     "convert",
+    "eval_stage1",
+    "eval_stage2",
     "open",
     "read",
+    "sample",
     "size_of",
+    "voxelize",
     "write",
 ]
 
@@ -238,6 +243,49 @@ def write(
     w, h = _size(size) or size_of(events)
     t, x, y, p = _columns(events)
     _v2ce.write(os.fspath(path), t, x, y, p, int(w), int(h), int(evt), compression)
+
+
+def _times(frame_times_us) -> np.ndarray:
+    return np.ascontiguousarray(frame_times_us, dtype=np.int64)
+
+
+def voxelize(
+    events: np.ndarray, frame_times_us, bins: int = 10, size: Optional[Size] = None
+) -> np.ndarray:
+    """Each frame interval's events as a voxel grid: float32 ``(intervals, 2 * bins, H, W)`` in
+    V2CE's layout (channel = polarity * bins + node, ON first), as ``convert --write-voxels``
+    writes Stage 1's. ``size`` defaults to ``size_of(events)``."""
+    w, h = _size(size) or size_of(events)
+    return _v2ce.voxelize(_columns(events), _times(frame_times_us), int(w), int(h), int(bins))
+
+
+def sample(voxels: np.ndarray, frame_times_us, sampler: str = "moment", seed: int = 0) -> np.ndarray:
+    """Events re-timed from voxels ``(intervals, 2 * bins, H, W)`` (``len(frame_times_us)`` is
+    one more than the intervals) by a Stage 2 sampler: ``moment`` (the default), ``ldati``,
+    ``ldati-random``, ``even`` or ``random``. Every cell's count is kept."""
+    v = np.ascontiguousarray(voxels, dtype=np.float32)
+    if v.ndim != 4:
+        raise ValueError(f"voxels: {v.ndim} dimensions; expected (intervals, 2 * bins, H, W)")
+    return _events(_v2ce.sample(v, _times(frame_times_us), sampler, int(seed)),
+                   (v.shape[3], v.shape[2]))
+
+
+def eval_stage1(real: np.ndarray, sim: np.ndarray, frame_times_us,
+                size: Optional[Size] = None) -> dict:
+    """``v2ce eval stage1``'s scores of ``sim`` against ``real`` on the frame intervals: TPF1,
+    TF1, RF1, accuracies, PMSE-2/4, event counts and ratio, C-METE, METE, PGER."""
+    w, h = _size(size) or size_of(real)
+    return json.loads(_v2ce.eval_stage1(_columns(real), _columns(sim), _times(frame_times_us),
+                                        int(w), int(h)))
+
+
+def eval_stage2(events: np.ndarray, frame_times_us, sampler: str = "moment", bins: int = 10,
+                seed: int = 0, size: Optional[Size] = None) -> dict:
+    """``v2ce eval stage2``'s scores: the events voxelized per frame interval, re-timed by
+    ``sampler`` and compared with themselves (C-METE, METE, PGER, timings)."""
+    w, h = _size(size) or size_of(events)
+    return json.loads(_v2ce.eval_stage2(_columns(events), _times(frame_times_us), int(w), int(h),
+                                        sampler, int(bins), int(seed)))
 
 
 class Reader:
