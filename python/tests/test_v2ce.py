@@ -25,7 +25,9 @@ CLI = Path(os.environ.get("V2CE_BIN", ROOT / "target" / "release" / "v2ce"))
 def cli(*args, cwd=None):
     if not CLI.exists():
         pytest.fail(f"no v2ce binary at {CLI} (cargo build --release, or set V2CE_BIN)")
-    out = subprocess.run([str(CLI), *map(str, args)], cwd=cwd, capture_output=True, text=True)
+    # From the repository, where the CLI finds the venv's ONNX Runtime as a user's run would.
+    out = subprocess.run([str(CLI), *map(str, args)], cwd=cwd or ROOT, capture_output=True,
+                         text=True)
     assert out.returncode == 0, out.stderr
     return out
 
@@ -108,6 +110,24 @@ def test_numpy_frames_are_the_cli_on_the_same_images(tmp_path):
     # A non-contiguous view is copied once and gives the same.
     wide = np.ascontiguousarray(np.repeat(frames, 2, axis=2))[:, :, ::2]
     same(v2ce.convert(wide, times_us=times, seed=3), got)
+
+
+def test_the_learned_tier_is_the_cli_where_onnx_runtime_is(tmp_path):
+    import importlib.util
+
+    if importlib.util.find_spec("onnxruntime") is None:
+        pytest.skip("SKIPPED: no onnxruntime in this interpreter (pip install onnxruntime)")
+    frames = moving_bar(n=10)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for k, f in enumerate(frames):
+        write_png(folder / f"{k:03d}.png", f)
+    cli("convert", folder, "--fps", "100", "--color", "srgb", "--stage1", "learned",
+        "-o", tmp_path / "cli.aedat4")
+    want = v2ce.read(tmp_path / "cli.aedat4")
+    got = v2ce.convert(frames, times_us=np.arange(10, dtype=np.int64) * 10_000, tier="learned")
+    assert len(got) > 100
+    same(got, want)
 
 
 def test_the_streaming_simulator_equals_convert():
@@ -307,3 +327,37 @@ def v2ce_frame_times(clip):
             b, e = f["exposure_begin_t"], f["exposure_end_t"]
             times.append(b + (e - b) // 2 if e >= b > 0 else f["t"])
     return np.asarray(times, np.int64)
+
+
+def test_the_gil_is_released_while_the_core_works():
+    import threading
+
+    done = threading.Event()
+    result = {}
+
+    def work():
+        result["events"] = v2ce.convert("fixture", max_frames=45)
+        done.set()
+
+    worker = threading.Thread(target=work)
+    worker.start()
+    spins = 0
+    while not done.is_set():
+        spins += 1
+    worker.join()
+    # Held through the conversion, the GIL would have stopped this loop for its whole length.
+    assert len(result["events"]) > 0
+    assert spins > 100_000, spins
+
+
+def test_sizes_from_outside_are_bounded_before_allocating():
+    with pytest.raises(ValueError):
+        v2ce.Simulator(65535, 65535)
+    with pytest.raises(ValueError, match="frames"):
+        v2ce.convert(np.zeros((2, 8193, 1), np.uint8), times_us=np.array([0, 1], np.int64))
+    events = np.zeros(1, v2ce.EVENT_DTYPE)
+    with pytest.raises(ValueError, match="voxel tensor|GB"):
+        v2ce.voxelize(events, np.arange(0, 100_000_000, 1000, dtype=np.int64), bins=1000,
+                      size=(8192, 8192))
+    with pytest.raises(ValueError):
+        v2ce.sample(np.zeros((1, 3, 4, 4), np.float32), np.array([0, 10], np.int64))

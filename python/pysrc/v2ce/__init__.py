@@ -88,11 +88,29 @@ def _size(size: Optional[Size]) -> Optional[Tuple[int, int]]:
     return (int(w), int(h))
 
 
+def _onnxruntime_library() -> Optional[str]:
+    """The ONNX Runtime library of this interpreter's ``onnxruntime`` package, if installed
+    (found without importing it), for the learned tier; the core also looks in
+    ``ORT_DYLIB_PATH``, the current folder's venv and the system's folders."""
+    import importlib.util
+
+    spec = importlib.util.find_spec("onnxruntime")
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    for folder in spec.submodule_search_locations:
+        capi = os.path.join(folder, "capi")
+        if os.path.isdir(capi):
+            libs = sorted(f for f in os.listdir(capi) if f.startswith("libonnxruntime.so"))
+            if libs:
+                return os.path.join(capi, libs[-1])
+    return None
+
+
 def _settings(tier: str, preset: Optional[str], seed: int, mode: Optional[str],
               sampler: Optional[str], model: Optional[PathLike], params: dict) -> dict:
     """The keyword arguments as the configuration's tables (config/v2ce.toml documents every
     key): ``preset``, ``seed``, ``mode`` (stage1.output), ``sampler``; ``params`` go to the
-    tier's own table (``[stage1.physics]`` or ``[stage1.learned]``)."""
+    tier's own table (``[stage1.learned]`` for the learned tier, else ``[stage1.physics]``)."""
     if model is not None and tier == "physics":
         tier = "learned"
     stage1: dict = {"tier": tier, "seed": int(seed)}
@@ -101,13 +119,18 @@ def _settings(tier: str, preset: Optional[str], seed: int, mode: Optional[str],
     if mode is not None:
         stage1["output"] = mode
     learned: dict = {}
+    physics: dict = {}
     if model is not None:
         learned["model"] = os.fspath(model)
-    table = "physics" if tier == "physics" else "learned"
-    own = learned if table == "learned" else {}
-    own.update(params)
-    if own:
-        stage1[table] = own
+    (learned if tier == "learned" else physics).update(params)
+    if tier != "physics" and "ort_library" not in learned and not os.environ.get("ORT_DYLIB_PATH"):
+        found = _onnxruntime_library()
+        if found is not None:
+            learned["ort_library"] = found
+    if learned:
+        stage1["learned"] = learned
+    if physics:
+        stage1["physics"] = physics
     stage2: dict = {"seed": int(seed)}
     if sampler is not None:
         stage2["sampler"] = sampler
