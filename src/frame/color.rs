@@ -27,9 +27,28 @@ pub fn rgb_to_luma(r: u8, g: u8, b: u8) -> u16 {
     y.round().clamp(0.0, 65535.0) as u16
 }
 
+/// Linear luminance of every gamma-encoded gray value: a table, so converting a frame costs a
+/// lookup per pixel (no rounding call).
+pub fn gray_to_luma_lut() -> &'static [u16; 256] {
+    static LUT: OnceLock<[u16; 256]> = OnceLock::new();
+    LUT.get_or_init(|| {
+        let f = srgb_to_linear_lut();
+        std::array::from_fn(|v| f[v].round() as u16)
+    })
+}
+
 /// Linear luminance of a gamma-encoded gray value.
 pub fn gray_to_luma(v: u8) -> u16 {
-    srgb_to_linear_lut()[v as usize].round() as u16
+    gray_to_luma_lut()[v as usize]
+}
+
+/// Linear luminance of every luma code `Y'` of a gray `Y'CbCr` pixel (chroma 128): what
+/// [`ycbcr_to_rgb`] then [`rgb_to_luma`] give, as a table for monochrome video.
+pub fn gray_ycbcr_to_luma_lut(full_range: bool) -> [u16; 256] {
+    std::array::from_fn(|y| {
+        let (r, g, b) = ycbcr_to_rgb(y as u8, 128, 128, full_range);
+        rgb_to_luma(r, g, b)
+    })
 }
 
 /// Converts interleaved `R'G'B'` bytes to linear luminance.

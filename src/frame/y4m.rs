@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
-use super::color::{rgb_to_luma, ycbcr_to_rgb};
+use super::color::{gray_ycbcr_to_luma_lut, rgb_to_luma, ycbcr_to_rgb};
 use super::{Frame, FrameSource};
 use crate::error::{Error, Result};
 
@@ -25,6 +25,8 @@ pub struct Y4mSource {
     // the decoder reports a frame cut short as a plain end of file.
     consumed: Arc<AtomicU64>,
     frame_end: u64,
+    /// Monochrome streams: luminance per `Y'` code, made at the first frame.
+    mono: Option<[u16; 256]>,
 }
 
 /// Counts the bytes read through it.
@@ -103,6 +105,7 @@ impl Y4mSource {
             full_range,
             index: 0,
             frame_end: consumed.load(Ordering::Relaxed),
+            mono: None,
             consumed,
         })
     }
@@ -161,7 +164,15 @@ impl FrameSource for Y4mSource {
         };
         let cw = if sx == 0 { 0 } else { w.div_ceil(sx) };
         let mut luma = Vec::with_capacity(w * h);
-        for y in 0..h {
+        if sx == 0 {
+            // Monochrome: the luminance is a function of Y' alone.
+            let lut = self
+                .mono
+                .get_or_insert_with(|| gray_ycbcr_to_luma_lut(full));
+            luma.extend(yp.iter().take(w * h).map(|&v| lut[v as usize]));
+            luma.resize(w * h, lut[0]);
+        }
+        for y in (0..h).filter(|_| sx != 0) {
             for x in 0..w {
                 let yy = yp.get(y * w + x).copied().unwrap_or(0);
                 let (cb, cr) = match (x.checked_div(sx), y.checked_div(sy)) {
