@@ -36,6 +36,101 @@ impl ProcessUsage {
     }
 }
 
+/// Each of the process's threads now: its id, its name (the kernel's `comm`, at most 15 bytes)
+/// and its user + system CPU seconds (`/proc/self/task/*/stat`; empty where /proc is missing).
+pub fn thread_cpu() -> Vec<(u32, String, f64)> {
+    // SAFETY: sysconf only reads a system constant.
+    let ticks = unsafe { libc::sysconf(libc::_SC_CLK_TCK) };
+    let ticks = if ticks > 0 { ticks as f64 } else { 100.0 };
+    let Ok(dir) = std::fs::read_dir("/proc/self/task") else {
+        return Vec::new();
+    };
+    dir.filter_map(|entry| {
+        let entry = entry.ok()?;
+        let tid: u32 = entry.file_name().to_str()?.parse().ok()?;
+        let stat = std::fs::read_to_string(entry.path().join("stat")).ok()?;
+        let (head, rest) = stat.rsplit_once(')')?;
+        let name = head.split_once('(')?.1.to_string();
+        // After the name: state (field 3), ..., utime (14) and stime (15).
+        let fields: Vec<&str> = rest.split_whitespace().collect();
+        let utime: f64 = fields.get(11)?.parse().ok()?;
+        let stime: f64 = fields.get(12)?.parse().ok()?;
+        Some((tid, name, (utime + stime) / ticks))
+    })
+    .collect()
+}
+
+/// Thread id -> (name, CPU seconds at the start or when first seen, latest CPU seconds).
+type Readings = std::collections::HashMap<u32, (String, f64, f64)>;
+
+/// Follows the CPU time of every thread of the process while it runs (threads that end are
+/// kept with their last reading, taken every 200 ms).
+pub struct ThreadCpu {
+    done: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    handle: Option<std::thread::JoinHandle<Readings>>,
+    started: std::time::Instant,
+}
+
+impl ThreadCpu {
+    /// Starts following (its own thread, `cpu-sampler`, is left out of the figures).
+    pub fn start() -> std::io::Result<ThreadCpu> {
+        use std::sync::atomic::Ordering;
+        let done = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let baseline: std::collections::HashMap<u32, f64> =
+            thread_cpu().into_iter().map(|(t, _, c)| (t, c)).collect();
+        let handle = std::thread::Builder::new()
+            .name("cpu-sampler".into())
+            .spawn({
+                let done = done.clone();
+                move || {
+                    // tid -> (name, CPU at the start or first sight, latest CPU)
+                    let mut seen = std::collections::HashMap::new();
+                    loop {
+                        for (tid, name, cpu) in thread_cpu() {
+                            let first = baseline.get(&tid).copied().unwrap_or(0.0);
+                            let e = seen.entry(tid).or_insert((name.clone(), first, cpu));
+                            e.0 = name;
+                            e.2 = cpu;
+                        }
+                        if done.load(Ordering::Relaxed) {
+                            return seen;
+                        }
+                        std::thread::sleep(std::time::Duration::from_millis(200));
+                    }
+                }
+            })?;
+        Ok(ThreadCpu {
+            done,
+            handle: Some(handle),
+            started: std::time::Instant::now(),
+        })
+    }
+
+    /// Stops; each thread name's CPU over the wall time since the start, percent of one core,
+    /// largest first (threads of one name, e.g. per-client writers, added together).
+    pub fn finish(mut self) -> Vec<(String, f64)> {
+        self.done.store(true, std::sync::atomic::Ordering::Relaxed);
+        let seen = self
+            .handle
+            .take()
+            .and_then(|h| h.join().ok())
+            .unwrap_or_default();
+        let wall = self.started.elapsed().as_secs_f64().max(1e-9);
+        let mut by_name: std::collections::BTreeMap<String, f64> = Default::default();
+        for (name, first, last) in seen.into_values() {
+            if name != "cpu-sampler" {
+                *by_name.entry(name).or_default() += (last - first).max(0.0);
+            }
+        }
+        let mut out: Vec<(String, f64)> = by_name
+            .into_iter()
+            .map(|(n, s)| (n, 100.0 * s / wall))
+            .collect();
+        out.sort_by(|a, b| b.1.total_cmp(&a.1));
+        out
+    }
+}
+
 /// The size of a memory page, bytes (4096 where `sysconf` cannot tell).
 pub fn page_size() -> u64 {
     // SAFETY: sysconf only reads a system constant.
@@ -78,5 +173,35 @@ mod tests {
         assert!(page_size() >= 4096);
         let (virt, res) = (virtual_bytes().unwrap(), resident_bytes().unwrap());
         assert!(virt >= res && res > 0, "{virt} {res}");
+    }
+}
+
+#[cfg(test)]
+mod thread_tests {
+    use super::*;
+
+    #[test]
+    fn a_busy_thread_shows_under_its_name() {
+        let cpu = ThreadCpu::start().unwrap();
+        std::thread::Builder::new()
+            .name("busy-for-test".into())
+            .spawn(|| {
+                let start = std::time::Instant::now();
+                let mut x = 0u64;
+                while start.elapsed() < std::time::Duration::from_millis(1000) {
+                    x = std::hint::black_box(x.wrapping_add(1));
+                }
+            })
+            .unwrap()
+            .join()
+            .unwrap();
+        let threads = cpu.finish();
+        let busy = threads
+            .iter()
+            .find(|(n, _)| n == "busy-for-test")
+            .map_or(0.0, |(_, p)| *p);
+        // Ended before the last reading: kept with its last reading (taken every 200 ms).
+        assert!(busy > 10.0, "{threads:?}");
+        assert!(!threads.iter().any(|(n, _)| n == "cpu-sampler"));
     }
 }

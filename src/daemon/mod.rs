@@ -253,6 +253,9 @@ pub fn run(config: &Config, stop: &AtomicBool) -> Result<Report> {
     Ok(report)
 }
 
+/// The name of `v2ce bench`'s in-process receiver thread, whose CPU is not the daemon's.
+pub const BENCH_RECEIVER: &str = "bench-receiver";
+
 /// What [`bench()`] measured for one frame size.
 #[derive(Debug, Clone, Serialize)]
 pub struct BenchResult {
@@ -288,8 +291,13 @@ pub struct BenchResult {
     pub budget_ms: f64,
     /// Stage 1 as it ran (tier, window, stride, the network's time per window).
     pub stage1: crate::stage1::Stage1Stats,
-    /// This run's CPU time over its wall time, percent of one core.
+    /// This run's CPU time over its wall time, percent of one core (the receiver's included).
     pub cpu_percent: f64,
+    /// The daemon's own threads' CPU (all but the bench's receiver), percent of one core.
+    pub daemon_cpu_percent: f64,
+    /// Each thread's CPU by name (`v2ce-capture`, `v2ce-stage1`, `v2ce-sink0`, ...,
+    /// `bench-receiver`), percent of one core, largest first.
+    pub threads: Vec<(String, f64)>,
     /// Smallest and largest resident set at the stats ticks (10 s apart; the end
     /// when the run was shorter), KiB.
     pub rss_range_kib: (u64, u64),
@@ -305,7 +313,7 @@ impl BenchResult {
         format!(
             "{}x{} {} L={} stride {}: {:.1} frames/s ({} dropped), {:.0} events/s; capture-to-send latency p50 \
              {:.2} ms, p90 {:.2} ms, p99 {:.2} ms, max {:.2} ms (budget {:.1} ms: {}); cpu \
-             {:.1}% of a core; rss {}..{} KiB, first minute max {} KiB, last minute max {} KiB; \
+             {:.1}% of a core (the daemon's threads {:.1}%: {}); rss {}..{} KiB, first minute max {} KiB, last minute max {} KiB; \
              udp receiver: {} of {} events ({} sent late), arrival minus event time{}, at most {} \
              datagrams in one ms",
             self.size.0,
@@ -327,6 +335,13 @@ impl BenchResult {
                 "missed"
             },
             self.cpu_percent,
+            self.daemon_cpu_percent,
+            self.threads
+                .iter()
+                .filter(|(_, p)| *p >= 0.5)
+                .map(|(n, p)| format!("{n} {p:.1}"))
+                .collect::<Vec<_>>()
+                .join(", "),
             self.rss_range_kib.0,
             self.rss_range_kib.1,
             self.rss_first_last_minute_kib.0,
@@ -359,27 +374,30 @@ pub fn bench(
     // size), measuring when events arrive against their own times.
     let done = Arc::new(AtomicBool::new(false));
     let (port_tx, port_rx) = crossbeam_channel::bounded::<String>(1);
-    let receiver = std::thread::spawn({
-        let done = done.clone();
-        move || {
-            let options = crate::listen::ListenOptions {
-                listen: crate::listen::Listen::Udp {
-                    bind: "127.0.0.1:0".into(),
-                    format: crate::format::datagram::UdpFormat::SpifTimestamped,
-                },
-                out: None,
-                size: (1, 1),
-                duration: None,
-                idle: Duration::from_secs(3600),
-                max_events: None,
-                recv_buffer: 0,
-                priority: 5,
-            };
-            crate::listen::listen(&options, &done, |at| {
-                let _ = port_tx.send(at.to_string());
-            })
-        }
-    });
+    let receiver = std::thread::Builder::new()
+        .name(BENCH_RECEIVER.into())
+        .spawn({
+            let done = done.clone();
+            move || {
+                let options = crate::listen::ListenOptions {
+                    listen: crate::listen::Listen::Udp {
+                        bind: "127.0.0.1:0".into(),
+                        format: crate::format::datagram::UdpFormat::SpifTimestamped,
+                    },
+                    out: None,
+                    size: (1, 1),
+                    duration: None,
+                    idle: Duration::from_secs(3600),
+                    max_events: None,
+                    recv_buffer: 0,
+                    priority: 5,
+                };
+                crate::listen::listen(&options, &done, |at| {
+                    let _ = port_tx.send(at.to_string());
+                })
+            }
+        })
+        .map_err(|e| Error::Run(format!("cannot start the bench's receiver: {e}")))?;
     let address = port_rx
         .recv_timeout(Duration::from_secs(5))
         .map_err(|_| Error::invalid("bench", "the UDP receiver did not start"))?;
@@ -409,6 +427,8 @@ pub fn bench(
     };
     tracing::info!("bench {}x{}: {what}, {seconds} s", size.0, size.1);
     let cpu_before = ProcessUsage::now().cpu_s;
+    let threads = crate::process::ThreadCpu::start()
+        .map_err(|e| Error::Run(format!("cannot start the CPU sampler: {e}")))?;
     let mut rss = Vec::new();
     let mut on_tick = |s: &Snapshot| {
         tracing::info!("{}", s.line());
@@ -421,6 +441,7 @@ pub fn bench(
     }
     let report = pipeline::run(source, stages, &pipeline_options, stop, &mut on_tick);
     drop(http);
+    let threads = threads.finish();
     // Let the last datagrams land, then stop the receiver.
     std::thread::sleep(Duration::from_millis(200));
     done.store(true, Ordering::Relaxed);
@@ -470,6 +491,12 @@ pub fn bench(
         },
         stage1: report.stage1.clone(),
         cpu_percent: 100.0 * (s.cpu_s - cpu_before) / seconds,
+        daemon_cpu_percent: threads
+            .iter()
+            .filter(|(n, _)| n != BENCH_RECEIVER)
+            .map(|(_, p)| p)
+            .sum(),
+        threads,
         rss_range_kib: (rss.iter().copied().min().unwrap_or(0), max_of(&rss)),
         rss_first_last_minute_kib: (max_of(&rss[..minute]), max_of(&rss[rss.len() - minute..])),
     })
