@@ -898,26 +898,13 @@ mod tests {
                 lag_budget: Some(Duration::ZERO),
                 ..Options::default()
             };
-            let stop = AtomicBool::new(false);
-            let config = crate::config::Config::default();
             // 120 frames of 5 ms at 50 times real time: a frame every 0.1 ms, faster than
             // Stage 1 takes them.
             let source = Source {
                 pace: Some(50.0),
                 ..Source::file(edge(120))
             };
-            let stages = Stages {
-                stage1: crate::stage1::build(
-                    &config.stage1,
-                    config.stage2.bins,
-                    source.first.size(),
-                    Default::default(),
-                )
-                .unwrap(),
-                sampler: config.stage2.sampler.build(config.stage2.seed),
-                sinks: vec![sink],
-            };
-            let report = run(source, stages, &options, &stop, &mut |_| {}).unwrap();
+            let report = run_with(source, vec![sink], &options);
             let got = got.lock().unwrap();
             (report, got.len() as u64, got.last().map_or(0, |e| e.t))
         };
@@ -944,26 +931,13 @@ mod tests {
             capacity: 2,
             ..Options::default()
         };
-        let stop = AtomicBool::new(false);
-        let config = crate::config::Config::default();
         // 200 frames at 5 ms replayed at half speed: 10 ms a frame, which Stage 1 and the
         // recording keep up with and the other output (25 ms a batch) does not.
         let source = Source {
             pace: Some(0.5),
             ..Source::file(edge(200))
         };
-        let stages = Stages {
-            stage1: crate::stage1::build(
-                &config.stage1,
-                config.stage2.bins,
-                source.first.size(),
-                Default::default(),
-            )
-            .unwrap(),
-            sampler: config.stage2.sampler.build(config.stage2.seed),
-            sinks: vec![file, net],
-        };
-        let report = run(source, stages, &options, &stop, &mut |_| {}).unwrap();
+        let report = run_with(source, vec![file, net], &options);
         let s = &report.stats;
         let (f, n) = (&s.sinks[0], &s.sinks[1]);
         assert!(f.recording && !n.recording);
@@ -1009,6 +983,11 @@ mod tests {
             max_frames,
             ..Options::default()
         };
+        run_with(source, sinks, &options)
+    }
+
+    /// Runs the default config's stages with `options`.
+    fn run_with(source: Source, sinks: Vec<Box<dyn Sink>>, options: &Options) -> Report {
         let stop = AtomicBool::new(false);
         let config = crate::config::Config::default();
         let size = source.first.size();
@@ -1023,7 +1002,7 @@ mod tests {
             sampler: config.stage2.sampler.build(config.stage2.seed),
             sinks,
         };
-        run(source, stages, &options, &stop, &mut |_| {}).unwrap()
+        run(source, stages, options, &stop, &mut |_| {}).unwrap()
     }
 
     #[test]
