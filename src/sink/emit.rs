@@ -60,14 +60,32 @@ impl EmitClock {
     pub fn due(&self, t: i64) -> Option<Instant> {
         let (t0, c0) = self.anchor?;
         let at = c0 + self.delay;
-        // Beyond ~30 years a time is nonsense; keep the arithmetic finite.
-        let span = |us: i64| Duration::from_secs_f64((us as f64 / 1e6 / self.speed).min(1e9));
+        let span = |us: i64| self.wall(us);
         Some(if t >= t0 {
             at + span(t.saturating_sub(t0))
         } else {
             at.checked_sub(span(t0.saturating_sub(t)))
                 .map_or(c0, |d| d.max(c0))
         })
+    }
+
+    /// The wall-clock time that `us` microseconds of event time (at least 0) take: integer
+    /// arithmetic in real time (speed 1), one multiplication otherwise. Beyond ~30 years a
+    /// time is nonsense; the arithmetic stays finite.
+    fn wall(&self, us: i64) -> Duration {
+        const MOST_US: u64 = 1_000_000_000 * 1_000_000;
+        let us = (us.max(0) as u64).min(MOST_US);
+        if self.speed == 1.0 {
+            Duration::from_micros(us)
+        } else {
+            Duration::from_nanos((us as f64 * 1e3 / self.speed).min(MOST_US as f64 * 1e3) as u64)
+        }
+    }
+
+    /// The event time, us, that a wall-clock `span` covers (at least 0): the events within it
+    /// of a first one are due within `span` of it.
+    pub fn event_span(&self, span: Duration) -> i64 {
+        (span.as_nanos() as f64 * self.speed / 1e3).min(i64::MAX as f64 / 2.0) as i64
     }
 
     /// The due time of the event at `t`, after anchoring the clock again on it when it is more
@@ -110,6 +128,14 @@ mod tests {
         odd.anchor(0, c0);
         assert_eq!(odd.due(2_000), Some(c0 + Duration::from_millis(2)));
         assert!(odd.due(i64::MAX).is_some());
+        assert!(odd.due(i64::MIN).is_some());
+        // A wall-clock slice covers speed times as much event time.
+        assert_eq!(clock.event_span(Duration::from_micros(500)), 500);
+        assert_eq!(fast.event_span(Duration::from_micros(500)), 5_000);
+        // The integer path of real time and the multiplication of a replay agree.
+        let mut half = EmitClock::new(Duration::ZERO, 0.5);
+        half.anchor(0, c0);
+        assert_eq!(half.due(1_000), Some(c0 + Duration::from_millis(2)));
     }
 
     #[test]

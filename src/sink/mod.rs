@@ -9,6 +9,7 @@
 //! A network sink never blocks its caller on a receiver: what cannot be sent at once is dropped
 //! and counted in [`SinkStats`].
 
+mod datagrams;
 pub mod emit;
 pub mod file;
 pub mod preview;

@@ -9,9 +9,10 @@
 //! caller never waits on a receiver. Datagrams leave either as fast as the kernel takes them
 //! ([`EmitMode::Asap`]) or each event at its own time ([`EmitMode::EventTime`], the daemon's
 //! default: a datagram holds the events due within one `slice` and leaves when the last of them
-//! is due, so none arrives early; see [`super::emit`]). The sending thread wakes
-//! `WAKE_GRACE` (0.2 ms) after a datagram is due and sends every datagram due by then, and runs at
-//! realtime priority when allowed (`src/realtime.rs`), so its wakes are few and on time. For `spif`, which carries no
+//! is due, so none arrives early; see [`super::emit`]). The sending thread wakes one slice
+//! after a datagram is due and sends every datagram due by then in one system call
+//! (`sendmmsg`), and runs at realtime priority when allowed (`src/realtime.rs`), so its wakes
+//! are few and on time. For `spif`, which carries no
 //! timestamps, the arrival time is the event time. An optional pacing limit (datagrams per
 //! second) spaces the datagrams out further. Both sleep the sending thread only, which in the
 //! daemon is the sink's own.
@@ -22,6 +23,7 @@ use std::time::{Duration, Instant};
 use clap::ValueEnum;
 use serde::{Deserialize, Serialize};
 
+use super::datagrams::Datagrams;
 use super::emit::EmitClock;
 use super::{ClosedBy, Sink, SinkContext, SinkStats};
 use crate::error::{Error, Result};
@@ -150,12 +152,20 @@ const CATCH_UP_RATE: u32 = 2;
 /// How long a sender at normal priority spins before each due time.
 const SPIN: Duration = Duration::from_micros(100);
 
-/// How long after a datagram's due time the sending thread wakes for it; it then sends every
-/// datagram due by then. At a million events a second datagrams fall due every few
-/// microseconds: waking for each cost three quarters of a core in wake-ups and left receivers on
-/// the same cores too little time (measured: 1.7% lost by `v2ce listen` at 640x480), while one
-/// wake per grace at most (5,000 a second) costs 45% and adds at most the grace to any event.
+/// How long after a datagram's due time the sending thread wakes for it, at least; it then
+/// sends every datagram due by then, in one call.
 const WAKE_GRACE: Duration = Duration::from_micros(200);
+
+/// How long after a datagram's due time the sending thread wakes for it: one emission slice
+/// (at least [`WAKE_GRACE`], at most a millisecond), so a stream wakes its sender about once
+/// per slice, whatever its event rate. At a million events a second datagrams fall due every
+/// few microseconds: waking for each cost three quarters of a core in wake-ups and left
+/// receivers on the same cores too little time (measured: 1.7% lost by `v2ce listen` at
+/// 640x480). Every event still leaves at or after its due time, and at most a slice and the
+/// grace after it.
+fn wake_grace(slice: Duration) -> Duration {
+    slice.clamp(WAKE_GRACE, Duration::from_millis(1))
+}
 
 /// Sets up the calling thread to send at event time (see [`crate::realtime`]): precise timers,
 /// and the realtime policy at `priority` when allowed. Returns whether it took.
@@ -225,6 +235,8 @@ pub struct UdpSink {
     target: SocketAddr,
     per_datagram: usize,
     buf: Vec<u8>,
+    /// Datagrams due by the current wake, sent together.
+    queued: Datagrams,
     /// When the next datagram may go, under pacing.
     next_slot: Instant,
     interval: Option<Duration>,
@@ -308,6 +320,7 @@ impl UdpSink {
         Ok(UdpSink {
             per_datagram,
             buf: Vec::with_capacity(config.payload),
+            queued: Datagrams::default(),
             next_slot: Instant::now(),
             interval,
             clock,
@@ -347,6 +360,28 @@ impl UdpSink {
                 self.stats.events_dropped += chunk.len() as u64;
             }
         }
+    }
+
+    /// Queues a datagram of `chunk` to leave with the others due by the same wake; under a
+    /// pacing limit it leaves on its own, at its slot.
+    fn queue(&mut self, chunk: &[Event]) {
+        if self.interval.is_some() {
+            return self.datagram(chunk);
+        }
+        if self.queued.full() {
+            self.flush();
+        }
+        let format = self.config.format;
+        self.queued.push(chunk.len(), |buf| {
+            for e in chunk {
+                format.encode(e, buf);
+            }
+        });
+    }
+
+    /// Sends the queued datagrams.
+    fn flush(&mut self) {
+        self.queued.flush(&self.socket, &mut self.stats);
     }
 
     fn pace(&mut self) {
@@ -396,8 +431,9 @@ impl Sink for UdpSink {
         }
         if self.clock.is_none() {
             for chunk in events.chunks(self.per_datagram) {
-                self.datagram(chunk);
+                self.queue(chunk);
             }
+            self.flush();
             return Ok(());
         }
         let spin = match self.spin {
@@ -423,39 +459,38 @@ impl Sink for UdpSink {
             let Some(first_due) = clock.due_at(events[i].t, Instant::now()) else {
                 break;
             };
-            // The events due within one slice of the first, as many as a datagram holds.
-            let mut j = i + 1;
-            let mut last_due = first_due;
-            while j < events.len() && j - i < self.per_datagram {
-                match clock.due(events[j].t) {
-                    Some(d) if d <= first_due + slice => last_due = d,
-                    _ => break,
-                }
-                j += 1;
-            }
+            // The events due within one slice of the first (times compared as integers: the
+            // slice in event time), as many as a datagram holds.
+            let limit = events[i].t.saturating_add(clock.event_span(slice));
+            let most = (i + self.per_datagram).min(events.len());
+            let j = i + 1 + events[i + 1..most].partition_point(|e| e.t <= limit);
+            let last_due = clock.due(events[j - 1].t).unwrap_or(first_due);
             let reanchors = clock.reanchors;
-            // One wake sends every datagram due by then: wait for this one only when it is
-            // due after the last wake.
+            // One wake per slice sends every datagram due by then: wait for this one only
+            // when it is due after the last wake, sending those queued first.
+            let grace = wake_grace(slice);
             if self.woke.is_none_or(|w| last_due > w) {
-                let wake = last_due + WAKE_GRACE;
+                self.flush();
+                let wake = last_due + grace;
                 wait_until(wake, spin);
                 self.woke = Some(wake);
             }
             // Catching up: datagrams more than a millisecond late follow a pacing clock that
             // advances by 1 / CATCH_UP_RATE of the time between their due times, so a stall is
             // replayed at that multiple of the stream's own rate instead of in one burst that
-            // overflows receivers. The
-            // thread waits only when the clock is a wake grace ahead (a sleep per datagram
-            // would cost more than the datagrams' spacing and never catch up), and the clock
-            // never lags now by more than a grace (no burst allowance builds up).
+            // overflows receivers. The thread waits only when the clock is a wake grace ahead
+            // (a sleep per datagram would cost more than the datagrams' spacing and never
+            // catch up), and the clock never lags now by more than a grace (no burst
+            // allowance builds up).
             let now = Instant::now();
             if now > last_due + Duration::from_millis(1) {
                 let gap = self
                     .previous_due
                     .map_or(Duration::ZERO, |p| last_due.saturating_duration_since(p));
-                let floor = now.checked_sub(WAKE_GRACE).unwrap_or(now);
+                let floor = now.checked_sub(grace).unwrap_or(now);
                 let pace = self.catchup.map_or(now, |p| p.max(floor)) + gap / CATCH_UP_RATE;
-                if pace > now + WAKE_GRACE {
+                if pace > now + grace {
+                    self.flush();
                     wait_until(pace, spin);
                 }
                 self.catchup = Some(pace);
@@ -478,9 +513,10 @@ impl Sink for UdpSink {
                     })
                     .count() as u64;
             }
-            self.datagram(&events[i..j]);
+            self.queue(&events[i..j]);
             i = j;
         }
+        self.flush();
         Ok(())
     }
 
