@@ -86,14 +86,95 @@ pub fn time_slice(events: &[Event], start: i64, end: i64) -> &[Event] {
     &events[lo..hi.max(lo)]
 }
 
-/// Sorts events by [`Event::order_key`].
+/// Sorts events by [`Event::order_key`]. When the times' span and the coordinates fit one
+/// 64-bit word together (a frame interval's events on any sensor do), the events are sorted
+/// by that word: the same order, and a comparison is one integer compare instead of four.
 pub fn sort_events(events: &mut [Event]) {
-    events.sort_unstable_by_key(Event::order_key);
+    match PackedKey::fitting(events) {
+        Some(key) => events.sort_unstable_by_key(|e| key.of(e)),
+        None => events.sort_unstable_by_key(Event::order_key),
+    }
+}
+
+/// [`Event::order_key`] packed into one word for a set of events: time since the earliest,
+/// row, column and polarity, from the highest bits down.
+#[derive(Debug, Clone, Copy)]
+struct PackedKey {
+    t_min: i64,
+    /// Bits of the column and polarity together (the row sits above them).
+    x_bits: u32,
+    /// Bits of row, column and polarity together (the time sits above them).
+    low_bits: u32,
+}
+
+impl PackedKey {
+    /// The packing for `events`, if their time span and coordinates fit 64 bits.
+    fn fitting(events: &[Event]) -> Option<PackedKey> {
+        let first = events.first()?;
+        let (mut t_min, mut t_max, mut x_max, mut y_max) = (first.t, first.t, 0u16, 0u16);
+        for e in events {
+            t_min = t_min.min(e.t);
+            t_max = t_max.max(e.t);
+            x_max = x_max.max(e.x);
+            y_max = y_max.max(e.y);
+        }
+        let bits = |v: u64| 64 - v.leading_zeros();
+        let x_bits = bits(x_max.into()) + 1;
+        let low_bits = x_bits + bits(y_max.into());
+        let span = t_max.checked_sub(t_min)? as u64;
+        (bits(span) + low_bits <= 64).then_some(PackedKey {
+            t_min,
+            x_bits,
+            low_bits,
+        })
+    }
+
+    fn of(self, e: &Event) -> u64 {
+        // `low_bits` is at most 33, and `fitting` checked that the time fits above it.
+        let t = e.t.wrapping_sub(self.t_min) as u64;
+        (t << self.low_bits) | ((e.y as u64) << self.x_bits) | ((e.x as u64) << 1) | e.on as u64
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_packed_sort_orders_as_the_key_does() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(7);
+        // Narrow and wide coordinates and spans, up to the widest that packs and past it.
+        for (t_lo, t_hi, x_hi, y_hi) in [
+            (0i64, 33_000i64, 639u16, 479u16),
+            (1_600_000_000_000_000, 1_600_000_000_040_000, 345, 259),
+            (-5, 5, 1, 0),
+            (i64::MIN, i64::MAX, u16::MAX, u16::MAX),
+            (0, 1 << 31, u16::MAX, u16::MAX),
+            (0, 1 << 30, u16::MAX, u16::MAX),
+        ] {
+            let mut events: Vec<Event> = (0..2_000)
+                .map(|_| {
+                    Event::new(
+                        rng.gen_range(t_lo..=t_hi),
+                        rng.gen_range(0..=x_hi),
+                        rng.gen_range(0..=y_hi),
+                        rng.gen(),
+                    )
+                })
+                .collect();
+            // Ties in time, and identical events.
+            for k in 0..200 {
+                events[k + 1].t = events[k].t;
+            }
+            events[500] = events[501];
+            let mut want = events.clone();
+            want.sort_by_key(Event::order_key);
+            sort_events(&mut events);
+            assert_eq!(events, want, "{t_lo}..{t_hi}, {x_hi} x {y_hi}");
+        }
+        sort_events(&mut []);
+    }
 
     #[test]
     fn packet_sorts_with_deterministic_ties() {
