@@ -32,6 +32,7 @@ pub(crate) mod pipeline;
 pub(crate) mod process;
 pub(crate) mod realtime;
 pub mod render;
+pub(crate) mod rounding;
 pub mod sink;
 pub(crate) mod source;
 pub mod stage1;

@@ -2,6 +2,8 @@
 
 use std::sync::OnceLock;
 
+use crate::rounding::round_to_u16;
+
 /// The sRGB transfer function decoded for every 8-bit value, scaled to 0..=65535.
 pub fn srgb_to_linear_lut() -> &'static [f32; 256] {
     static LUT: OnceLock<[f32; 256]> = OnceLock::new();
@@ -24,7 +26,7 @@ pub fn srgb_to_linear_lut() -> &'static [f32; 256] {
 pub fn rgb_to_luma(r: u8, g: u8, b: u8) -> u16 {
     let lut = srgb_to_linear_lut();
     let y = 0.2126 * lut[r as usize] + 0.7152 * lut[g as usize] + 0.0722 * lut[b as usize];
-    y.round().clamp(0.0, 65535.0) as u16
+    round_to_u16(y)
 }
 
 /// Linear luminance of every gamma-encoded gray value: a table, so converting a frame costs a
@@ -69,7 +71,7 @@ pub fn ycbcr_to_rgb(y: u8, cb: u8, cr: u8, full_range: bool) -> (u8, u8, u8) {
     let r = y + 1.402 * cr;
     let g = y - 0.344_136 * cb - 0.714_136 * cr;
     let b = y + 1.772 * cb;
-    let q = |v: f32| v.round().clamp(0.0, 255.0) as u8;
+    let q = |v: f32| round_to_u16(v).min(255) as u8;
     (q(r), q(g), q(b))
 }
 

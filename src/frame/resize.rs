@@ -4,6 +4,7 @@
 
 use super::{Frame, FrameSource};
 use crate::error::{Error, Result};
+use crate::rounding::round_to_u16;
 
 /// Per-output-pixel spans of input pixels with their weights, along one axis.
 #[derive(Debug, Clone)]
@@ -89,16 +90,20 @@ impl Resampler {
                     .sum();
             }
         }
+        // Row by row: each output row sums its input rows in order (the same sum as pixel by
+        // pixel, from the same neutral element), on vectors.
+        let zero: f32 = std::iter::empty::<f32>().sum();
         let mut luma = Vec::with_capacity(tw * self.to.1 as usize);
+        let mut acc = vec![zero; tw];
         for (first, weights) in &self.y.spans {
-            for x in 0..tw {
-                let v: f32 = weights
-                    .iter()
-                    .enumerate()
-                    .map(|(k, w)| w * self.rows[(first + k) * tw + x])
-                    .sum();
-                luma.push(v.round().clamp(0.0, u16::MAX as f32) as u16);
+            acc.fill(zero);
+            for (k, &w) in weights.iter().enumerate() {
+                let row = &self.rows[(first + k) * tw..(first + k + 1) * tw];
+                for (a, &r) in acc.iter_mut().zip(row) {
+                    *a += w * r;
+                }
             }
+            luma.extend(acc.iter().map(|&v| round_to_u16(v)));
         }
         Ok(Frame {
             t: frame.t,
@@ -213,6 +218,59 @@ mod tests {
         let mean_out: f64 = out.luma.iter().map(|&v| v as f64).sum::<f64>() / out.luma.len() as f64;
         assert!((mean_in - mean_out).abs() < 1.0, "{mean_in} vs {mean_out}");
         assert!(out.luma.windows(2).take(345).all(|w| w[0] < w[1]));
+    }
+
+    /// The definition, pixel by pixel: each output pixel the weighted sum down its column of
+    /// the horizontal pass's rows, rounded.
+    fn by_pixel(r: &Resampler, frame: &Frame) -> Vec<u16> {
+        let (fw, fh, tw) = (r.from.0 as usize, r.from.1 as usize, r.to.0 as usize);
+        let mut rows = vec![0f32; tw * fh];
+        for y in 0..fh {
+            for (x, (first, weights)) in r.x.spans.iter().enumerate() {
+                rows[y * tw + x] = weights
+                    .iter()
+                    .zip(&frame.luma[y * fw + first..])
+                    .map(|(w, &v)| w * v as f32)
+                    .sum();
+            }
+        }
+        let mut out = Vec::new();
+        for (first, weights) in &r.y.spans {
+            for x in 0..tw {
+                let v: f32 = weights
+                    .iter()
+                    .enumerate()
+                    .map(|(k, w)| w * rows[(first + k) * tw + x])
+                    .sum();
+                out.push(v.round().clamp(0.0, u16::MAX as f32) as u16);
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn row_by_row_gives_the_pixel_by_pixel_result() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(3);
+        for (from, to) in [
+            ((640, 480), (346, 260)),
+            ((346, 260), (640, 480)),
+            ((1280, 720), (640, 480)),
+            ((97, 13), (31, 29)),
+        ] {
+            let frame = Frame {
+                t: 0,
+                width: from.0,
+                height: from.1,
+                luma: (0..from.0 as usize * from.1 as usize)
+                    .map(|_| rng.gen())
+                    .collect(),
+                exposure_us: None,
+            };
+            let mut r = Resampler::new(from, to).unwrap();
+            let want = by_pixel(&r, &frame);
+            assert_eq!(r.resample(&frame).unwrap().luma, want, "{from:?} -> {to:?}");
+        }
     }
 
     #[test]

@@ -78,6 +78,7 @@ use super::motion::{Motion, Subframes};
 use crate::error::{Error, Result};
 use crate::event::{sort_events, Event};
 use crate::frame::{Frame, FULL_SCALE};
+use crate::rounding::{ceil_to_u32, round_to_i64};
 
 pub use config::{LightModel, PhysicsConfig, Preset, MAX_NOISE_HZ};
 pub use stats::PhysicsStats;
@@ -204,7 +205,7 @@ fn log_table(cfg: &PhysicsConfig, g: f64) -> Vec<f32> {
 }
 
 /// The photoreceptor at one light level over a frame interval.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, Default)]
 struct FilterRow {
     /// Time constant, us (0: an instant pixel).
     tau: f32,
@@ -564,33 +565,40 @@ impl PhysicsSim {
         let l_ref = &self.l_ref[range.clone()];
         let on = &self.thr_on[range.clone()];
         let off = &self.thr_off[range];
-        for j in 0..luma.len() {
+        // In three passes over the row, so the middle one, the arithmetic, runs on vectors:
+        // the tables' values of each pixel's light; each pixel's response over the interval
+        // and whether it stays within its thresholds (kept) or may cross one (the slow path);
+        // the slow pixels' indices. A tile row has at most 64 pixels (checked by `validate`).
+        let n = luma.len();
+        let mut l1s = [0.0f32; 64];
+        let mut rows = [FilterRow::default(); 64];
+        for j in 0..n {
             let v = luma[j];
-            let l1 = self.log_lut[v as usize];
-            let l0 = l_in[j];
-            let y0 = l_p[j];
+            l1s[j] = self.log_lut[v as usize];
+            rows[j] = filter[filter_index(v, inv_g)];
+        }
+        let mut kept = [false; 64];
+        for j in 0..n {
+            let (l1, l0, y0) = (l1s[j], l_in[j], l_p[j]);
             let FilterRow {
                 tau, decay, amp, ..
-            } = filter[filter_index(v, inv_g)];
-            let y1 = if tau > 0.0 {
-                let rt = (l1 - l0) * inv_dt * tau;
-                l1 - rt + (y0 - l0 + rt) * decay
-            } else {
-                l1
-            };
+            } = rows[j];
+            let rt = (l1 - l0) * inv_dt * tau;
+            let filtered = l1 - rt + (y0 - l0 + rt) * decay;
+            let y1 = if tau > 0.0 { filtered } else { l1 };
             // The flicker swings the response by up to `amp` either way.
             let hi = y0.max(l0).max(l1).max(y1) + amp;
             let lo = y0.min(l0).min(l1).min(y1) - amp;
             let lref = l_ref[j];
-            if hi - lref < on[j] && lref - lo < off[j] {
-                settled &= l0 == l1 && (y1 - l1).abs() < 1e-4;
-                l_in[j] = l1;
-                l_p[j] = y1;
-            } else {
-                // A tile row has at most 64 pixels (checked by `validate`).
-                slow[n_slow] = j;
-                n_slow += 1;
-            }
+            let keep = (hi - lref < on[j]) & (lref - lo < off[j]);
+            kept[j] = keep;
+            settled &= !keep | ((l0 == l1) & ((y1 - l1).abs() < 1e-4));
+            l_in[j] = if keep { l1 } else { l0 };
+            l_p[j] = if keep { y1 } else { y0 };
+        }
+        for (j, &keep) in kept[..n].iter().enumerate() {
+            slow[n_slow] = j;
+            n_slow += usize::from(!keep);
         }
         for &j in &slow[..n_slow] {
             settled = false;
@@ -634,10 +642,11 @@ impl PhysicsSim {
         let (on, off) = (self.thr_on[i] as f64, self.thr_off[i] as f64);
         let dt = (t1 - t0) as f64;
         let span = (l1 - l0).abs().max((l1 - y).abs());
-        let mut steps = (span / (0.25 * on.min(off))).ceil() as u32;
+        let mut steps = ceil_to_u32(span / (0.25 * on.min(off)));
         if tau > 0.0 {
             // Short steps against the time constant, so the filter's curve is followed.
-            steps = steps.max((dt / tau).ceil().min(8.0) as u32);
+            // `dt / tau` is finite and positive here (`tau > 0`, `dt >= 1`).
+            steps = steps.max(ceil_to_u32(dt / tau).min(8));
         }
         let mut most = self.cfg.max_substeps;
         let (mut phase, mut omega) = (0.0, 0.0);
@@ -665,8 +674,10 @@ impl PhysicsSim {
         );
         let mut last = self.last_event[i];
         let refractory = self.cfg.refractory_us;
+        // The input at the step's start: `l0` (the formula below at k = 0), then the last
+        // step's end.
+        let mut u_prev = l0;
         for k in 1..=steps {
-            let u_prev = l0 + (l1 - l0) * (k - 1) as f64 / steps as f64;
             let u = l0 + (l1 - l0) * k as f64 / steps as f64;
             let y_prev = y;
             y = if tau > 0.0 {
@@ -694,7 +705,7 @@ impl PhysicsSim {
                 } else {
                     1.0
                 };
-                let te = (t0 + (t_start + frac * h).round() as i64).clamp(t0 + 1, t1);
+                let te = (t0 + round_to_i64(t_start + frac * h)).clamp(t0 + 1, t1);
                 lref = level;
                 if ((te - last) as f64) < refractory {
                     self.stats.refractory_drops += 1;
@@ -703,6 +714,7 @@ impl PhysicsSim {
                 last = te;
                 out.push(Event::new(te, x, yy, polarity));
             }
+            u_prev = u;
         }
         self.l_in[i] = l1 as f32;
         self.l_p[i] = y as f32;
