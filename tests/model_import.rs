@@ -464,7 +464,8 @@ fn importing_the_seeded_checkpoint() {
     assert_eq!(report.dropped_gan_keys, 0);
     assert!(!report.prefix_stripped);
     assert_eq!(report.parameters, 52_791_508);
-    assert_eq!(report.initializers, 64);
+    // 64 weights and the shape that folds the upsamplings to 4-D.
+    assert_eq!(report.initializers, 65);
     assert_eq!(report.spectral_norms.len(), 12);
     // sigma after one power iteration, computed independently with torch in float64.
     let (name, sigma) = &report.spectral_norms[0];
@@ -500,7 +501,8 @@ fn importing_the_seeded_checkpoint() {
     assert_eq!(meta("spectral_norm").as_deref(), Some("power-iteration"));
     assert_eq!(meta("batch_norm").as_deref(), Some("folded"));
     let g = m.graph.as_ref().unwrap();
-    assert_eq!(g.initializer.len(), 64);
+    // The weights and the fold of the four upsamplings to 4-D (`fold_lead`).
+    assert_eq!(g.initializer.len(), 65);
     let dims = |v: &v2ce::model::onnx::ValueInfoProto| -> Vec<String> {
         v.r#type
             .as_ref()
@@ -537,6 +539,7 @@ fn importing_the_seeded_checkpoint() {
     };
     assert_eq!(count("Conv"), 32);
     assert_eq!(count("Resize"), 4);
+    assert_eq!(count("Reshape"), 8, "each resize folded to 4-D and back");
     assert_eq!(count("BatchNormalization"), 0);
     assert_eq!(count("Transpose"), 2);
 
@@ -604,7 +607,7 @@ fn other_options_change_the_graph() {
         .filter(|n| n.op_type.as_deref() == Some("BatchNormalization"))
         .count();
     assert_eq!(bn, 30);
-    assert_eq!(g.initializer.len(), 164);
+    assert_eq!(g.initializer.len(), 165);
     assert!(
         tensors
             .values()
@@ -650,8 +653,9 @@ fn bad_values_name_their_key() {
     let built = arch
         .build_model(&mut ok, &ImportOptions::default(), origin)
         .unwrap();
-    // head, 1 encoder (3 convs), 1 resblock (3), 1 decoder (3), pred: 11 convs, 22 initializers.
-    assert_eq!(built.model.graph.unwrap().initializer.len(), 22);
+    // head, 1 encoder (3 convs), 1 resblock (3), 1 decoder (3), pred: 11 convs, 22 initializers,
+    // and the shape that folds the upsampling to 4-D.
+    assert_eq!(built.model.graph.unwrap().initializer.len(), 23);
 
     for (key, value, expected) in [
         ("UNet.encoders.0.conv2.weight", f32::NAN, "non-finite"),

@@ -314,6 +314,16 @@ pub fn initializer_f32(name: &str, dims: &[usize], data: &[f32]) -> TensorProto 
     }
 }
 
+/// An int64 initializer with its data as little-endian `raw_data`.
+pub fn initializer_i64(name: &str, dims: &[usize], data: &[i64]) -> TensorProto {
+    TensorProto {
+        dims: dims.iter().map(|&d| d as i64).collect(),
+        data_type: Some(INT64),
+        name: Some(name.into()),
+        raw_data: Some(data.iter().flat_map(|x| x.to_le_bytes()).collect()),
+    }
+}
+
 /// A graph input or output: a float32 tensor whose dimensions are fixed (`Ok`) or named (`Err`).
 pub fn tensor_value(
     name: &str,
