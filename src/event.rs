@@ -90,9 +90,58 @@ pub fn time_slice(events: &[Event], start: i64, end: i64) -> &[Event] {
 /// 64-bit word together (a frame interval's events on any sensor do), the events are sorted
 /// by that word: the same order, and a comparison is one integer compare instead of four.
 pub fn sort_events(events: &mut [Event]) {
-    match PackedKey::fitting(events) {
-        Some(key) => events.sort_unstable_by_key(|e| key.of(e)),
-        None => events.sort_unstable_by_key(Event::order_key),
+    let Some(key) = PackedKey::fitting(events) else {
+        events.sort_unstable_by_key(Event::order_key);
+        return;
+    };
+    if events.len() < RADIX_FROM {
+        events.sort_unstable_by_key(|e| key.of(e));
+        return;
+    }
+    // The word holds the whole event: sort the words (a radix sort over the bits in use) and
+    // write the events back from them.
+    let mut words: Vec<u64> = events.iter().map(|e| key.of(e)).collect();
+    let top = words.iter().copied().max().unwrap_or(0);
+    radix_sort(&mut words, 64 - top.leading_zeros());
+    for (e, &w) in events.iter_mut().zip(&words) {
+        *e = key.event(w);
+    }
+}
+
+/// Fewer events than this are sorted by comparisons (a radix sort's passes cost more there).
+const RADIX_FROM: usize = 512;
+
+/// Bits per radix digit.
+const DIGIT_BITS: u32 = 11;
+
+/// Sorts `words` whose values use their lowest `bits` bits, least significant digit first
+/// (stable passes, one histogram pass for all digits).
+fn radix_sort(words: &mut Vec<u64>, bits: u32) {
+    const BUCKETS: usize = 1 << DIGIT_BITS;
+    let passes = bits.div_ceil(DIGIT_BITS) as usize;
+    let mut counts = vec![[0usize; BUCKETS]; passes];
+    for &w in words.iter() {
+        for (p, c) in counts.iter_mut().enumerate() {
+            c[((w >> (p as u32 * DIGIT_BITS)) as usize) & (BUCKETS - 1)] += 1;
+        }
+    }
+    let mut other = vec![0u64; words.len()];
+    for (p, c) in counts.iter_mut().enumerate() {
+        // A digit that is the same in every word leaves the order as it is.
+        if c.iter().any(|&n| n == words.len()) {
+            continue;
+        }
+        let mut start = 0;
+        for n in c.iter_mut() {
+            (*n, start) = (start, start + *n);
+        }
+        let shift = p as u32 * DIGIT_BITS;
+        for &w in words.iter() {
+            let d = ((w >> shift) as usize) & (BUCKETS - 1);
+            other[c[d]] = w;
+            c[d] += 1;
+        }
+        std::mem::swap(words, &mut other);
     }
 }
 
@@ -129,6 +178,17 @@ impl PackedKey {
         })
     }
 
+    /// The event a word holds.
+    fn event(self, w: u64) -> Event {
+        let x_mask = (1u64 << self.x_bits) - 1;
+        Event {
+            t: self.t_min.wrapping_add((w >> self.low_bits) as i64),
+            y: ((w & ((1u64 << self.low_bits) - 1)) >> self.x_bits) as u16,
+            x: ((w & x_mask) >> 1) as u16,
+            on: w & 1 == 1,
+        }
+    }
+
     fn of(self, e: &Event) -> u64 {
         // `low_bits` is at most 33, and `fitting` checked that the time fits above it.
         let t = e.t.wrapping_sub(self.t_min) as u64;
@@ -153,7 +213,7 @@ mod tests {
             (0, 1 << 31, u16::MAX, u16::MAX),
             (0, 1 << 30, u16::MAX, u16::MAX),
         ] {
-            let mut events: Vec<Event> = (0..2_000)
+            let mut events: Vec<Event> = (0..20_000)
                 .map(|_| {
                     Event::new(
                         rng.gen_range(t_lo..=t_hi),
@@ -174,6 +234,16 @@ mod tests {
             assert_eq!(events, want, "{t_lo}..{t_hi}, {x_hi} x {y_hi}");
         }
         sort_events(&mut []);
+        // Below the radix sort's size, and one event.
+        for n in [1, 2, 300, 511, 512, 513] {
+            let mut events: Vec<Event> = (0..n)
+                .map(|i| Event::new((i * 7919 % 1000) as i64, (i % 13) as u16, 3, i % 3 == 0))
+                .collect();
+            let mut want = events.clone();
+            want.sort_by_key(Event::order_key);
+            sort_events(&mut events);
+            assert_eq!(events, want, "{n}");
+        }
     }
 
     #[test]
