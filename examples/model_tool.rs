@@ -5,6 +5,7 @@
 //! cargo run --release --example model_tool -- list CKPT                       # keys, shapes, sums
 //! cargo run --release --example model_tool -- copy CKPT OUT.pt [LOCATION]       # read, then write again
 //! cargo run --release --example model_tool -- import CKPT OUT.onnx [power-iteration|stored|exact] [keep-bn]
+//! cargo run --release --example model_tool -- refold IN.onnx OUT.onnx         # an older import's 5-D resizes to 4-D
 //! ```
 
 use std::path::Path;
@@ -16,7 +17,7 @@ fn run(args: &[String]) -> v2ce::Result<()> {
     let usage = || {
         v2ce::Error::invalid(
             "arguments",
-            "seeded SEED OUT [LOCATION] | list CKPT | copy CKPT OUT [LOCATION] | import CKPT OUT [MODE] [keep-bn]",
+            "seeded SEED OUT [LOCATION] | list CKPT | copy CKPT OUT [LOCATION] | import CKPT OUT [MODE] [keep-bn] | refold IN OUT",
         )
     };
     match args.first().map(String::as_str) {
@@ -76,6 +77,21 @@ fn run(args: &[String]) -> v2ce::Result<()> {
             }
             let report = model::import(Path::new(ckpt), Path::new(out), &options)?;
             println!("{report:#?}");
+        }
+        Some("refold") => {
+            use prost::Message;
+            let input = args.get(1).ok_or_else(usage)?;
+            let out = args.get(2).ok_or_else(usage)?;
+            let bytes =
+                std::fs::read(input).map_err(|e| v2ce::Error::invalid("model", e.to_string()))?;
+            let mut m = model::onnx::ModelProto::decode(bytes.as_slice())
+                .map_err(|e| v2ce::Error::invalid("model", e.to_string()))?;
+            let n = model::v2ce_net::fold_upsampling(&mut m);
+            let mut file = std::fs::File::create(out)
+                .map_err(|e| v2ce::Error::invalid("output", e.to_string()))?;
+            model::onnx::write_model(m, &mut file)
+                .map_err(|e| v2ce::Error::invalid("output", e.to_string()))?;
+            println!("{input} -> {out}: {n} resizes folded to 4-D");
         }
         _ => return Err(usage()),
     }

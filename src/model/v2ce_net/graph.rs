@@ -84,10 +84,14 @@ impl Architecture {
         g.prediction_and_output(&self.pred, &x)?;
         let GraphBuilder {
             nodes,
-            initializers,
+            mut initializers,
             spectral_norms,
             ..
         } = g;
+        if !self.decoders.is_empty() {
+            // After the weights, where a rewritten older import has it too.
+            add_fold_lead(&mut initializers);
+        }
         let graph = self.graph(nodes, initializers);
         let model = onnx::model(graph, "v2ce", self.metadata(&source_name, options));
         Ok(BuiltModel {
@@ -236,82 +240,12 @@ impl GraphBuilder<'_> {
         Ok(())
     }
 
-    /// Adds a decoder's input: `x` resized (nearest) to the spatial size of `skip`, then
-    /// concatenated with it along the channels; returns the concatenation's name. `p` is the
-    /// decoder's module path.
-    ///
-    /// The resize runs on four dimensions: `(B, C, L, H, W)` is folded to `(B, C*L, H, W)`,
-    /// resized and unfolded, because ONNX Runtime's 5-D nearest `Resize` is a slow generic
-    /// loop (2.07 s of a 10.7 s window of the full network at 346x260, three times the 4-D
-    /// kernel's time). A nearest resize copies values, so the output is the same.
+    /// Adds a decoder's input: `x` resized (nearest) to the spatial size of `skip` (see
+    /// [`upsample_nodes`]), then concatenated with it along the channels; returns the
+    /// concatenation's name. `p` is the decoder's module path.
     fn upsample_and_concat(&mut self, p: &str, x: &str, skip: &str) -> String {
-        let name = |part: &str| format!("{p}.up.{part}");
-        let (lead, skip_hw, sizes) = (name("lead_dims"), name("skip_hw"), name("sizes"));
-        let (x_hw, fold_shape, folded) = (name("x_hw"), name("fold_shape"), name("folded"));
-        let (folded_lead, folded_sizes, resized) =
-            (name("folded_lead"), name("folded_sizes"), name("resized"));
         let (up, cat) = (format!("{p}.up"), format!("{p}.cat"));
-        let shape = |out: &str, of: &str, start: i64, end: i64| {
-            onnx::node(
-                "Shape",
-                out,
-                &[of],
-                &[out],
-                vec![onnx::attr_int("start", start), onnx::attr_int("end", end)],
-            )
-        };
-        let concat = |out: &str, parts: &[&str]| {
-            onnx::node(
-                "Concat",
-                out,
-                parts,
-                &[out],
-                vec![onnx::attr_int("axis", 0)],
-            )
-        };
-        // (B, C, L) and the sizes to unfold to, (B, C, L, Hs, Ws).
-        self.nodes.push(shape(&lead, x, 0, 3));
-        self.nodes.push(shape(&skip_hw, skip, 3, 5));
-        self.nodes.push(concat(&sizes, &[&lead, &skip_hw]));
-        // Fold: (B, C*L, H, W), the reshape's 0 copying B.
-        self.nodes.push(shape(&x_hw, x, 3, 5));
-        self.nodes.push(concat(&fold_shape, &[FOLD_LEAD, &x_hw]));
-        self.nodes.push(onnx::node(
-            "Reshape",
-            &folded,
-            &[x, &fold_shape],
-            &[&folded],
-            vec![],
-        ));
-        self.nodes.push(shape(&folded_lead, &folded, 0, 2));
-        self.nodes
-            .push(concat(&folded_sizes, &[&folded_lead, &skip_hw]));
-        self.nodes.push(onnx::node(
-            "Resize",
-            &resized,
-            &[&folded, "", "", &folded_sizes],
-            &[&resized],
-            vec![
-                onnx::attr_string("mode", "nearest"),
-                onnx::attr_string("coordinate_transformation_mode", "asymmetric"),
-                onnx::attr_string("nearest_mode", "floor"),
-            ],
-        ));
-        self.nodes.push(onnx::node(
-            "Reshape",
-            &up,
-            &[&resized, &sizes],
-            &[&up],
-            vec![],
-        ));
-        if !self
-            .initializers
-            .iter()
-            .any(|t| t.name.as_deref() == Some(FOLD_LEAD))
-        {
-            self.initializers
-                .push(onnx::initializer_i64(FOLD_LEAD, &[2], &[0, -1]));
-        }
+        self.nodes.extend(upsample_nodes(p, x, skip));
         self.nodes.push(onnx::node(
             "Concat",
             &cat,
@@ -493,4 +427,133 @@ impl GraphBuilder<'_> {
             .push(onnx::node("Relu", &out, &[&sum], &[&out], vec![]));
         Ok(out)
     }
+}
+
+/// The nodes that resize `x` (nearest) to the spatial size of `skip` into `{p}.up`, for the
+/// decoder at module path `p`; they need the [`FOLD_LEAD`] initializer ([`add_fold_lead`]).
+///
+/// The resize runs on four dimensions: `(B, C, L, H, W)` is folded to `(B, C*L, H, W)`,
+/// resized and unfolded, because ONNX Runtime's 5-D nearest `Resize` is a slow generic loop
+/// (2.07 s of a 10.7 s window of the full network at 346x260). A nearest resize copies
+/// values, so the output is the same.
+fn upsample_nodes(p: &str, x: &str, skip: &str) -> Vec<NodeProto> {
+    let name = |part: &str| format!("{p}.up.{part}");
+    let (lead, skip_hw, sizes) = (name("lead_dims"), name("skip_hw"), name("sizes"));
+    let (x_hw, fold_shape, folded) = (name("x_hw"), name("fold_shape"), name("folded"));
+    let (folded_lead, folded_sizes, resized) =
+        (name("folded_lead"), name("folded_sizes"), name("resized"));
+    let up = format!("{p}.up");
+    let shape = |out: &str, of: &str, start: i64, end: i64| {
+        onnx::node(
+            "Shape",
+            out,
+            &[of],
+            &[out],
+            vec![onnx::attr_int("start", start), onnx::attr_int("end", end)],
+        )
+    };
+    let concat = |out: &str, parts: &[&str]| {
+        onnx::node(
+            "Concat",
+            out,
+            parts,
+            &[out],
+            vec![onnx::attr_int("axis", 0)],
+        )
+    };
+    vec![
+        // (B, C, L) and the sizes to unfold to, (B, C, L, Hs, Ws).
+        shape(&lead, x, 0, 3),
+        shape(&skip_hw, skip, 3, 5),
+        concat(&sizes, &[&lead, &skip_hw]),
+        // Fold: (B, C*L, H, W), the reshape's 0 copying B.
+        shape(&x_hw, x, 3, 5),
+        concat(&fold_shape, &[FOLD_LEAD, &x_hw]),
+        onnx::node("Reshape", &folded, &[x, &fold_shape], &[&folded], vec![]),
+        shape(&folded_lead, &folded, 0, 2),
+        concat(&folded_sizes, &[&folded_lead, &skip_hw]),
+        onnx::node(
+            "Resize",
+            &resized,
+            &[&folded, "", "", &folded_sizes],
+            &[&resized],
+            vec![
+                onnx::attr_string("mode", "nearest"),
+                onnx::attr_string("coordinate_transformation_mode", "asymmetric"),
+                onnx::attr_string("nearest_mode", "floor"),
+            ],
+        ),
+        onnx::node("Reshape", &up, &[&resized, &sizes], &[&up], vec![]),
+    ]
+}
+
+/// Adds the [`FOLD_LEAD`] initializer unless it is there.
+fn add_fold_lead(initializers: &mut Vec<TensorProto>) {
+    if !initializers
+        .iter()
+        .any(|t| t.name.as_deref() == Some(FOLD_LEAD))
+    {
+        initializers.push(onnx::initializer_i64(FOLD_LEAD, &[2], &[0, -1]));
+    }
+}
+
+/// Rewrites a model imported before the 4-D fold (each decoder's `{p}.up` a 5-D `Resize`
+/// fed by `{p}.up.lead_dims`, `{p}.up.skip_hw` and `{p}.up.sizes`) into the nodes an import
+/// writes now, so a model whose checkpoint is gone runs as fast as a new import; weights and
+/// outputs are unchanged. Returns how many resizes were folded (0 for a model that has none
+/// of the old form).
+pub fn fold_upsampling(model: &mut ModelProto) -> usize {
+    let Some(graph) = model.graph.as_mut() else {
+        return 0;
+    };
+    let mut folded = 0;
+    loop {
+        let old = graph.node.iter().position(|n| {
+            n.op_type.as_deref() == Some("Resize")
+                && n.name.as_deref().is_some_and(|name| name.ends_with(".up"))
+                && n.input.first().is_some_and(|x| !x.ends_with(".up.folded"))
+        });
+        let Some(at) = old else { break };
+        let resize = &graph.node[at];
+        let name = resize.name.clone().unwrap_or_default();
+        let p = name.trim_end_matches(".up").to_string();
+        let x = resize.input[0].clone();
+        let skip_hw = format!("{p}.up.skip_hw");
+        let Some(skip) = graph
+            .node
+            .iter()
+            .find(|n| n.name.as_deref() == Some(skip_hw.as_str()))
+            .and_then(|n| n.input.first().cloned())
+        else {
+            break;
+        };
+        let helpers = [
+            format!("{p}.up.lead_dims"),
+            skip_hw,
+            format!("{p}.up.sizes"),
+        ];
+        let first = graph
+            .node
+            .iter()
+            .position(|n| {
+                n.name
+                    .as_deref()
+                    .is_some_and(|m| helpers.iter().any(|h| h == m))
+            })
+            .unwrap_or(at)
+            .min(at);
+        graph.node.retain(|n| {
+            n.name
+                .as_deref()
+                .is_none_or(|m| m != name && !helpers.iter().any(|h| h == m))
+        });
+        let tail = graph.node.split_off(first);
+        graph.node.extend(upsample_nodes(&p, &x, &skip));
+        graph.node.extend(tail);
+        folded += 1;
+    }
+    if folded > 0 {
+        add_fold_lead(&mut graph.initializer);
+    }
+    folded
 }

@@ -23,7 +23,7 @@ mod norms;
 
 pub use super::onnx::{IR_VERSION, OPSET};
 pub use architecture::{Architecture, ReceptiveField};
-pub use graph::{BuiltModel, WeightSource, ALIGN_KEY, RECEPTIVE_MARGIN_KEY};
+pub use graph::{fold_upsampling, BuiltModel, WeightSource, ALIGN_KEY, RECEPTIVE_MARGIN_KEY};
 pub use keys::{KeyKind, KeySpec, Selection};
 pub use layers::{Conv, ResidualBlock};
 pub use norms::{
