@@ -128,7 +128,7 @@ fn radix_sort(words: &mut Vec<u64>, bits: u32) {
     let mut other = vec![0u64; words.len()];
     for (p, c) in counts.iter_mut().enumerate() {
         // A digit that is the same in every word leaves the order as it is.
-        if c.iter().any(|&n| n == words.len()) {
+        if c.contains(&words.len()) {
             continue;
         }
         let mut start = 0;
