@@ -68,6 +68,7 @@
 //! from it and the frame index.
 
 mod config;
+mod crossings;
 mod stats;
 
 use rand::{Rng, SeedableRng};
@@ -78,7 +79,6 @@ use super::motion::{Motion, Subframes};
 use crate::error::{Error, Result};
 use crate::event::{sort_events, Event};
 use crate::frame::{Frame, FULL_SCALE};
-use crate::rounding::{ceil_to_u32, round_to_i64};
 
 pub use config::{LightModel, PhysicsConfig, Preset, MAX_NOISE_HZ};
 pub use stats::PhysicsStats;
@@ -439,7 +439,7 @@ impl PhysicsSim {
                 let mut settled = true;
                 for y in y0..y1 {
                     let row = y * w + x0..y * w + x1;
-                    settled &= self.row(row.clone(), luma, t0, t1, &filter, out);
+                    settled &= self.row(y, row.clone(), luma, t0, t1, &filter, out);
                     self.prev_luma[row.clone()].copy_from_slice(&luma[row]);
                 }
                 self.settled[ti] = settled;
@@ -544,8 +544,10 @@ impl PhysicsSim {
     /// Advances the pixels of `range` (one tile row) from `t0` to `t1`; returns whether all are
     /// at rest. The common case, a pixel whose filtered response cannot reach a threshold, is
     /// handled here on slices; the rest go to [`PhysicsSim::crossings`].
+    #[allow(clippy::too_many_arguments)]
     fn row(
         &mut self,
+        y: usize,
         range: std::ops::Range<usize>,
         luma: &[u16],
         t0: i64,
@@ -600,126 +602,17 @@ impl PhysicsSim {
             slow[n_slow] = j;
             n_slow += usize::from(!keep);
         }
-        for &j in &slow[..n_slow] {
+        if n_slow > 0 {
             settled = false;
-            let v = luma[j];
-            self.slow_pixel(start + j, v, t0, t1, filter, out);
+            // Index, column and light of each slow pixel.
+            let x0 = start - y * self.width as usize;
+            let mut pixels = [(0usize, 0u16, 0u16); 64];
+            for (p, &j) in pixels.iter_mut().zip(&slow[..n_slow]) {
+                *p = (start + j, (x0 + j) as u16, luma[j]);
+            }
+            self.crossings(y as u16, &pixels[..n_slow], t0, t1, filter, out);
         }
         settled
-    }
-
-    fn slow_pixel(
-        &mut self,
-        i: usize,
-        v: u16,
-        t0: i64,
-        t1: i64,
-        filter: &[FilterRow],
-        out: &mut Vec<Event>,
-    ) {
-        let l1 = self.log_lut[v as usize] as f64;
-        let l0 = self.l_in[i] as f64;
-        let row = filter[filter_index(v, (1.0 / self.photo_scale) as f32)];
-        self.crossings(i, l0, l1, t0, t1, row, out);
-    }
-
-    /// The slow path of [`PhysicsSim::row`]: sub-steps with timed crossings.
-    #[allow(clippy::too_many_arguments)]
-    fn crossings(
-        &mut self,
-        i: usize,
-        l0: f64,
-        l1: f64,
-        t0: i64,
-        t1: i64,
-        row: FilterRow,
-        out: &mut Vec<Event>,
-    ) {
-        let tau = row.tau as f64;
-        let amp = row.amp as f64;
-        let mut y = self.l_p[i] as f64;
-        let mut lref = self.l_ref[i] as f64;
-        let (on, off) = (self.thr_on[i] as f64, self.thr_off[i] as f64);
-        let dt = (t1 - t0) as f64;
-        let span = (l1 - l0).abs().max((l1 - y).abs());
-        let mut steps = ceil_to_u32(span / (0.25 * on.min(off)));
-        if tau > 0.0 {
-            // Short steps against the time constant, so the filter's curve is followed.
-            // `dt / tau` is finite and positive here (`tau > 0`, `dt >= 1`).
-            steps = steps.max(ceil_to_u32(dt / tau).min(8));
-        }
-        let mut most = self.cfg.max_substeps;
-        let (mut phase, mut omega) = (0.0, 0.0);
-        if amp > 0.0 {
-            // Eight steps per flicker cycle, so each cycle's crossings are found and timed.
-            steps = steps.max((8.0 * self.cfg.flicker_hz * dt * 1e-6).ceil().min(1e6) as u32);
-            most = most.max(FLICKER_MAX_SUBSTEPS);
-            phase = self.flicker_phase(t0) - row.lag as f64;
-            omega = std::f64::consts::TAU * self.cfg.flicker_hz * 1e-6;
-        }
-        let flicker = |t: f64| {
-            if amp > 0.0 {
-                amp * (phase + omega * t).sin()
-            } else {
-                0.0
-            }
-        };
-        let steps = steps.clamp(1, most);
-        let h = dt / steps as f64;
-        let decay = if tau > 0.0 { (-h / tau).exp() } else { 0.0 };
-        let rt = (l1 - l0) / dt * tau;
-        let (x, yy) = (
-            (i % self.width as usize) as u16,
-            (i / self.width as usize) as u16,
-        );
-        let mut last = self.last_event[i];
-        let refractory = self.cfg.refractory_us;
-        // The input at the step's start: `l0` (the formula below at k = 0), then the last
-        // step's end.
-        let mut u_prev = l0;
-        for k in 1..=steps {
-            let u = l0 + (l1 - l0) * k as f64 / steps as f64;
-            let y_prev = y;
-            y = if tau > 0.0 {
-                u - rt + (y_prev - u_prev + rt) * decay
-            } else {
-                u
-            };
-            // Relative to the interval's start: absolute times (~1.6e15 us for a DAVIS clock)
-            // would cost f64 its microseconds, and a recording and its export with times from
-            // another origin would differ by 1 us here and there.
-            let t_start = h * (k - 1) as f64;
-            // The response with the flicker's swing, at the step's start and end.
-            let prev = y_prev + flicker(t_start);
-            let now = y + flicker(t_start + h);
-            loop {
-                let (level, polarity) = if now - lref >= on {
-                    (lref + on, true)
-                } else if lref - now >= off {
-                    (lref - off, false)
-                } else {
-                    break;
-                };
-                let frac = if (now - prev).abs() > 1e-12 {
-                    ((level - prev) / (now - prev)).clamp(0.0, 1.0)
-                } else {
-                    1.0
-                };
-                let te = (t0 + round_to_i64(t_start + frac * h)).clamp(t0 + 1, t1);
-                lref = level;
-                if ((te - last) as f64) < refractory {
-                    self.stats.refractory_drops += 1;
-                    continue;
-                }
-                last = te;
-                out.push(Event::new(te, x, yy, polarity));
-            }
-            u_prev = u;
-        }
-        self.l_in[i] = l1 as f32;
-        self.l_p[i] = y as f32;
-        self.l_ref[i] = lref as f32;
-        self.last_event[i] = last;
     }
 
     /// Sparse noise events in `(t0, frame.t]`.
