@@ -91,6 +91,9 @@ pub struct PhysicsSim {
     seed: u64,
     /// `L` for every 16-bit luminance value.
     log_lut: Vec<f32>,
+    /// The filter-table row ([`filter_index`]) of every 16-bit luminance value at the current
+    /// `photo_scale`.
+    filter_rows: Vec<u8>,
     prev_luma: Vec<u16>,
     prev_t: Option<i64>,
     l_in: Vec<f32>,
@@ -117,6 +120,12 @@ pub struct PhysicsSim {
     warned_exposure: bool,
     /// Sub-frames along the flow (`motion = "flow"`).
     motion: Option<Subframes>,
+    /// Scratch: which tiles of the band being advanced are active.
+    band: Vec<bool>,
+    /// Scratch: the slow pixels of the band being advanced.
+    slow: Vec<SlowPixel>,
+    /// Scratch of the slow path (see [`crossings`]).
+    lanes: Vec<crossings::Lane>,
     stats: PhysicsStats,
 }
 
@@ -204,6 +213,16 @@ fn log_table(cfg: &PhysicsConfig, g: f64) -> Vec<f32> {
         .collect()
 }
 
+/// A pixel left to the slow path by [`PhysicsSim::row`]: its index, column, row and light at
+/// the interval's end.
+#[derive(Debug, Clone, Copy)]
+struct SlowPixel {
+    i: usize,
+    x: u16,
+    y: u16,
+    v: u16,
+}
+
 /// The photoreceptor at one light level over a frame interval.
 #[derive(Debug, Clone, Copy, Default)]
 struct FilterRow {
@@ -267,10 +286,14 @@ impl PhysicsSim {
         };
         Ok(PhysicsSim {
             motion,
+            slow: Vec::new(),
+            band: Vec::new(),
+            lanes: Vec::new(),
             width,
             height,
             seed,
             log_lut,
+            filter_rows: Vec::new(),
             prev_luma: Vec::new(),
             prev_t: None,
             l_in: vec![0.0; n],
@@ -331,6 +354,10 @@ impl PhysicsSim {
         if g != self.light_scale {
             self.light_scale = g;
             self.log_lut = log_table(&self.cfg, g);
+        }
+        if photo != self.photo_scale || self.filter_rows.is_empty() {
+            let inv_g = (1.0 / photo) as f32;
+            self.filter_rows = (0..=u16::MAX).map(|v| filter_index(v, inv_g) as u8).collect();
         }
         self.photo_scale = photo;
         let Some(t0) = self.prev_t else {
@@ -420,31 +447,62 @@ impl PhysicsSim {
         let tile = self.cfg.tile as usize;
         let (w, h) = (self.width as usize, self.height as usize);
         let tiles_x = w.div_ceil(tile);
+        // A band of tiles at a time, row by row across its active tiles: the pixels' state
+        // is read in the order it lies in memory. Pixels are independent and a frame's events
+        // are sorted afterwards, so the order does not change them.
+        let mut active = std::mem::take(&mut self.band);
+        let mut slow = std::mem::take(&mut self.slow);
         for ty in 0..h.div_ceil(tile) {
-            for tx in 0..tiles_x {
-                let ti = ty * tiles_x + tx;
-                if only.is_some_and(|(mask, value)| mask[ti] != value) {
-                    continue;
+            let (y0, y1) = (ty * tile, ((ty + 1) * tile).min(h));
+            let tiles = ty * tiles_x..(ty + 1) * tiles_x;
+            active.clear();
+            active.extend(
+                tiles
+                    .clone()
+                    .map(|ti| only.is_none_or(|(mask, value)| mask[ti] == value)),
+            );
+            // A tile is skipped when its light did not change and its pixels are at rest.
+            let mut changed = vec![false; tiles_x];
+            for y in y0..y1 {
+                let (now, before) = (
+                    &luma[y * w..(y + 1) * w],
+                    &self.prev_luma[y * w..(y + 1) * w],
+                );
+                for (tx, c) in changed.iter_mut().enumerate() {
+                    if active[tx] && !*c {
+                        let seg = tx * tile..((tx + 1) * tile).min(w);
+                        *c = now[seg.clone()] != before[seg];
+                    }
                 }
-                let (x0, x1) = (tx * tile, ((tx + 1) * tile).min(w));
-                let (y0, y1) = (ty * tile, ((ty + 1) * tile).min(h));
-                let unchanged = (y0..y1).all(|y| {
-                    luma[y * w + x0..y * w + x1] == self.prev_luma[y * w + x0..y * w + x1]
-                });
-                if unchanged && self.settled[ti] {
+            }
+            for (tx, a) in active.iter_mut().enumerate() {
+                if *a && !changed[tx] && self.settled[tiles.start + tx] {
                     self.stats.tiles_skipped += 1;
-                    continue;
+                    *a = false;
+                } else if *a {
+                    self.stats.tiles_active += 1;
+                    self.settled[tiles.start + tx] = true;
                 }
-                self.stats.tiles_active += 1;
-                let mut settled = true;
-                for y in y0..y1 {
-                    let row = y * w + x0..y * w + x1;
-                    settled &= self.row(y, row.clone(), luma, t0, t1, &filter, out);
+            }
+            if !active.contains(&true) {
+                continue;
+            }
+            slow.clear();
+            for y in y0..y1 {
+                for tx in (0..tiles_x).filter(|&tx| active[tx]) {
+                    let row = y * w + tx * tile..y * w + ((tx + 1) * tile).min(w);
+                    let before = slow.len();
+                    let settled = self.row(y, row.clone(), luma, t0, t1, &filter, &mut slow);
+                    self.settled[tiles.start + tx] &= settled && slow.len() == before;
                     self.prev_luma[row.clone()].copy_from_slice(&luma[row]);
                 }
-                self.settled[ti] = settled;
+            }
+            if !slow.is_empty() {
+                self.crossings(&slow, t0, t1, &filter, out);
             }
         }
+        self.slow = slow;
+        self.band = active;
     }
 
     /// Frame values per unit of calibration light in `frame` (see [`LightModel`]): for the
@@ -541,9 +599,10 @@ impl PhysicsSim {
         std::f64::consts::TAU * (t as f64).rem_euclid(period) / period
     }
 
-    /// Advances the pixels of `range` (one tile row) from `t0` to `t1`; returns whether all are
-    /// at rest. The common case, a pixel whose filtered response cannot reach a threshold, is
-    /// handled here on slices; the rest go to [`PhysicsSim::crossings`].
+    /// Advances the pixels of `range` (one tile row, row `y`) from `t0` to `t1`; returns whether
+    /// all are at rest. The common case, a pixel whose filtered response cannot reach a
+    /// threshold, is handled here on slices; the rest are appended to `slow` for
+    /// [`PhysicsSim::crossings`], which leaves their state untouched until then.
     #[allow(clippy::too_many_arguments)]
     fn row(
         &mut self,
@@ -553,13 +612,9 @@ impl PhysicsSim {
         t0: i64,
         t1: i64,
         filter: &[FilterRow],
-        out: &mut Vec<Event>,
+        slow: &mut Vec<SlowPixel>,
     ) -> bool {
         let inv_dt = 1.0 / (t1 - t0) as f32;
-        let inv_g = (1.0 / self.photo_scale) as f32;
-        let mut settled = true;
-        let mut slow: [usize; 64] = [0; 64];
-        let mut n_slow = 0;
         let start = range.start;
         let luma = &luma[range.clone()];
         let l_in = &mut self.l_in[range.clone()];
@@ -568,23 +623,33 @@ impl PhysicsSim {
         let on = &self.thr_on[range.clone()];
         let off = &self.thr_off[range];
         // In three passes over the row, so the middle one, the arithmetic, runs on vectors:
-        // the tables' values of each pixel's light; each pixel's response over the interval
-        // and whether it stays within its thresholds (kept) or may cross one (the slow path);
-        // the slow pixels' indices. A tile row has at most 64 pixels (checked by `validate`).
-        let n = luma.len();
+        // the tables' values of each pixel's light, one array per quantity; each pixel's
+        // response over the interval and whether it stays within its thresholds (kept) or may
+        // cross one (the slow path); the slow pixels. A tile row has at most 64 pixels
+        // (checked by `validate`).
+        let n = luma.len().min(64);
         let mut l1s = [0.0f32; 64];
-        let mut rows = [FilterRow::default(); 64];
+        let mut taus = [0.0f32; 64];
+        let mut decays = [0.0f32; 64];
+        let mut amps = [0.0f32; 64];
         for j in 0..n {
             let v = luma[j];
             l1s[j] = self.log_lut[v as usize];
-            rows[j] = filter[filter_index(v, inv_g)];
+            let row = filter[self.filter_rows[v as usize] as usize];
+            (taus[j], decays[j], amps[j]) = (row.tau, row.decay, row.amp);
         }
         let mut kept = [false; 64];
+        let mut settled = true;
+        let (l_in, l_p, l_ref, on, off) = (
+            &mut l_in[..n],
+            &mut l_p[..n],
+            &l_ref[..n],
+            &on[..n],
+            &off[..n],
+        );
         for j in 0..n {
             let (l1, l0, y0) = (l1s[j], l_in[j], l_p[j]);
-            let FilterRow {
-                tau, decay, amp, ..
-            } = rows[j];
+            let (tau, decay, amp) = (taus[j], decays[j], amps[j]);
             let rt = (l1 - l0) * inv_dt * tau;
             let filtered = l1 - rt + (y0 - l0 + rt) * decay;
             let y1 = if tau > 0.0 { filtered } else { l1 };
@@ -598,19 +663,16 @@ impl PhysicsSim {
             l_in[j] = if keep { l1 } else { l0 };
             l_p[j] = if keep { y1 } else { y0 };
         }
+        let x0 = start - y * self.width as usize;
         for (j, &keep) in kept[..n].iter().enumerate() {
-            slow[n_slow] = j;
-            n_slow += usize::from(!keep);
-        }
-        if n_slow > 0 {
-            settled = false;
-            // Index, column and light of each slow pixel.
-            let x0 = start - y * self.width as usize;
-            let mut pixels = [(0usize, 0u16, 0u16); 64];
-            for (p, &j) in pixels.iter_mut().zip(&slow[..n_slow]) {
-                *p = (start + j, (x0 + j) as u16, luma[j]);
+            if !keep {
+                slow.push(SlowPixel {
+                    i: start + j,
+                    x: (x0 + j) as u16,
+                    y: y as u16,
+                    v: luma[j],
+                });
             }
-            self.crossings(y as u16, &pixels[..n_slow], t0, t1, filter, out);
         }
         settled
     }
