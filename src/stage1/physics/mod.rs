@@ -357,7 +357,9 @@ impl PhysicsSim {
         }
         if photo != self.photo_scale || self.filter_rows.is_empty() {
             let inv_g = (1.0 / photo) as f32;
-            self.filter_rows = (0..=u16::MAX).map(|v| filter_index(v, inv_g) as u8).collect();
+            self.filter_rows = (0..=u16::MAX)
+                .map(|v| filter_index(v, inv_g) as u8)
+                .collect();
         }
         self.photo_scale = photo;
         let Some(t0) = self.prev_t else {
