@@ -871,7 +871,7 @@ mod tests {
         let (w, h) = (37usize, 23usize);
         let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(27);
         let mut m = Subframes::new(FlowPreset::Fast, 1.0, 8, w as u16, h as u16).unwrap();
-        let mut flow = |rng: &mut rand_xoshiro::Xoshiro256PlusPlus| -> Vec<[f32; 2]> {
+        let flow = |rng: &mut rand_xoshiro::Xoshiro256PlusPlus| -> Vec<[f32; 2]> {
             (0..w * h)
                 .map(|_| {
                     let reach = if rng.gen_bool(0.1) { 60.0 } else { 3.0 };
