@@ -300,9 +300,7 @@ mod tests {
         // 13-byte one, then a lone longer one: payloads numbered so order and length show.
         let mut sent = Vec::new();
         for run in [1usize, 2, 7, 64, 70] {
-            for _ in 0..run {
-                sent.push(40);
-            }
+            sent.extend(std::iter::repeat_n(40, run));
             sent.push(13);
             sent.push(52);
         }
