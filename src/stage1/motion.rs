@@ -83,10 +83,11 @@ const SETTLE_INTERVALS: u32 = 3;
 
 /// Memory the motion model takes per pixel beyond the pixel model's, with `max_subframes`:
 /// the sub-frames (2 bytes each), the gray frames (2), both flows (16) and their masks (2), the
-/// flow lengths (8), and OpenCV's pyramids and buffers (48, an estimate from DIS's per-level
-/// images at half resolution and below).
+/// flow lengths (8), and OpenCV's pyramids and buffers (48 per direction, an estimate from
+/// DIS's per-level images at half resolution and below: the two directions run side by side,
+/// each with its own).
 pub fn bytes_per_pixel(max_subframes: u32) -> u64 {
-    2 * u64::from(max_subframes.max(1) - 1) + 2 + 16 + 2 + 8 + 48
+    2 * u64::from(max_subframes.max(1) - 1) + 2 + 16 + 2 + 8 + 2 * 48
 }
 
 /// What the motion model did, for the physics tier's record.
@@ -122,7 +123,9 @@ impl MotionStats {
 /// Sub-frames between consecutive frames (see the module docs); kept across frames for its
 /// buffers and its flow estimator.
 pub struct Subframes {
+    /// The forward and backward flows' estimators, run side by side.
     flow: DenseFlow,
+    back: DenseFlow,
     width: usize,
     height: usize,
     max_step_px: f64,
@@ -156,6 +159,7 @@ impl Subframes {
     ) -> Result<Self> {
         Ok(Subframes {
             flow: DenseFlow::new(preset, width, height)?,
+            back: DenseFlow::new(preset, width, height)?,
             width: width.into(),
             height: height.into(),
             max_step_px,
@@ -262,10 +266,36 @@ impl Subframes {
             return 1;
         }
         let started = Instant::now();
-        let computed = self
-            .flow
-            .compute(&self.gray0, &self.gray1, &mut self.f01)
-            .and_then(|()| self.flow.compute(&self.gray1, &self.gray0, &mut self.f10));
+        // Forward and backward on two threads: the two are independent, and each estimator
+        // gives the same flow wherever it runs.
+        let Subframes {
+            flow,
+            back,
+            gray0,
+            gray1,
+            f01,
+            f10,
+            ..
+        } = self;
+        let computed = std::thread::scope(|scope| {
+            let backward = std::thread::Builder::new()
+                .name("v2ce-flow".into())
+                .spawn_scoped(scope, || back.compute(gray1, gray0, f10));
+            let forward = flow.compute(gray0, gray1, f01);
+            // No thread to be had (or a panic in it) fails the interval's flow: it is
+            // interpolated linearly, with the warning of any failed flow.
+            let backward = match backward {
+                Ok(handle) => handle.join().unwrap_or_else(|_| {
+                    Err(crate::error::Error::Run(
+                        "the backward flow's thread panicked".into(),
+                    ))
+                }),
+                Err(e) => Err(crate::error::Error::Run(format!(
+                    "no thread for the backward flow: {e}"
+                ))),
+            };
+            forward.and(backward)
+        });
         self.stats.flow_us += started.elapsed().as_micros() as u64;
         self.stats.flow_intervals += 1;
         if let Err(e) = computed {
