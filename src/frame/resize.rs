@@ -11,12 +11,18 @@ use crate::rounding::round_to_u16;
 struct Axis {
     // (first input index, weights summing to 1)
     spans: Vec<(usize, Vec<f32>)>,
+    /// The longest span.
+    taps: usize,
+    /// Every span's first index, clamped so that `taps` pixels from it lie in the input.
+    starts: Vec<usize>,
+    /// Every span's weights in `taps` slots, at their offsets from its start (0 elsewhere).
+    flat: Vec<f32>,
 }
 
 impl Axis {
     fn new(from: usize, to: usize) -> Self {
         let scale = from as f64 / to as f64;
-        let spans = (0..to)
+        let spans: Vec<(usize, Vec<f32>)> = (0..to)
             .map(|o| {
                 let (a, b) = (o as f64 * scale, (o + 1) as f64 * scale);
                 let first = a.floor() as usize;
@@ -31,7 +37,49 @@ impl Axis {
                 (first, weights.iter().map(|w| w / sum).collect())
             })
             .collect();
-        Axis { spans }
+        let taps = spans
+            .iter()
+            .map(|(_, w)| w.len())
+            .max()
+            .unwrap_or(1)
+            .min(from);
+        let mut starts = Vec::with_capacity(to);
+        let mut flat = vec![0.0; to * taps];
+        for (o, (first, weights)) in spans.iter().enumerate() {
+            let start = (*first).min(from - taps);
+            starts.push(start);
+            let slots = &mut flat[o * taps..(o + 1) * taps];
+            slots[first - start..first - start + weights.len()].copy_from_slice(weights);
+        }
+        Axis {
+            spans,
+            taps,
+            starts,
+            flat,
+        }
+    }
+
+    /// One row through the spans, `K` (= `taps`) slots each. The same sums as the spans'
+    /// own: each pixel's terms are added in order from the same neutral element, and an empty
+    /// slot adds `0 * v = +0`, which changes no sum of non-negative terms; the slots before a
+    /// span's first pixel (a span clamped at the input's end) hold such zeros too, and a sum
+    /// of them stays the neutral element's `-0 + +0 = +0`, which the first real term replaces
+    /// exactly.
+    #[inline(always)]
+    fn row<const K: usize>(&self, src: &[u16], dst: &mut [f32]) {
+        let zero: f32 = std::iter::empty::<f32>().sum();
+        for ((d, &start), w) in dst
+            .iter_mut()
+            .zip(&self.starts)
+            .zip(self.flat.chunks_exact(K))
+        {
+            let px = &src[start..start + K];
+            let mut acc = zero;
+            for k in 0..K {
+                acc += w[k] * px[k] as f32;
+            }
+            *d = acc;
+        }
     }
 }
 
@@ -79,15 +127,26 @@ impl Resampler {
         // Horizontal pass into f32 rows, then the vertical pass.
         self.rows.clear();
         self.rows.resize(tw * fh, 0.0);
+        let taps = self.x.taps;
         for y in 0..fh {
             let src = &frame.luma[y * fw..(y + 1) * fw];
             let dst = &mut self.rows[y * tw..(y + 1) * tw];
-            for (d, (first, weights)) in dst.iter_mut().zip(&self.x.spans) {
-                *d = weights
-                    .iter()
-                    .zip(&src[*first..])
-                    .map(|(w, &v)| w * v as f32)
-                    .sum();
+            match taps {
+                1 => self.x.row::<1>(src, dst),
+                2 => self.x.row::<2>(src, dst),
+                3 => self.x.row::<3>(src, dst),
+                4 => self.x.row::<4>(src, dst),
+                5 => self.x.row::<5>(src, dst),
+                6 => self.x.row::<6>(src, dst),
+                _ => {
+                    for (d, (first, weights)) in dst.iter_mut().zip(&self.x.spans) {
+                        *d = weights
+                            .iter()
+                            .zip(&src[*first..])
+                            .map(|(w, &v)| w * v as f32)
+                            .sum();
+                    }
+                }
             }
         }
         // Row by row: each output row sums its input rows in order (the same sum as pixel by
@@ -257,13 +316,21 @@ mod tests {
             ((346, 260), (640, 480)),
             ((1280, 720), (640, 480)),
             ((97, 13), (31, 29)),
+            // Spans of every length the row pass takes (1 to 6 pixels) and longer ones.
+            ((640, 480), (256, 200)),
+            ((640, 480), (128, 100)),
+            ((640, 480), (64, 48)),
+            ((5, 3), (1, 1)),
+            ((1, 1), (7, 5)),
+            ((31, 7), (6, 7)),
         ] {
             let frame = Frame {
                 t: 0,
                 width: from.0,
                 height: from.1,
+                // Black pixels half the time: sums of zeros keep their sign.
                 luma: (0..from.0 as usize * from.1 as usize)
-                    .map(|_| rng.gen())
+                    .map(|_| if rng.gen() { 0 } else { rng.gen() })
                     .collect(),
                 exposure_us: None,
             };
