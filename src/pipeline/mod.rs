@@ -399,13 +399,17 @@ pub fn run(
 /// machine falls behind: Stage 1 first trades its own detail for time (`pace`: the physics
 /// tier's sub-frames); then whole frames that would be late are skipped before Stage 1 spends
 /// time on them (the lag budget this returns); last, full queues evict. Under `block`, which
-/// loses nothing, it runs as offline and a slow machine lags instead.
+/// loses nothing, it runs as offline and a slow machine lags instead. An offline source (read
+/// as fast as Stage 1 takes it) lets Stage 1 look a frame ahead ([`Stage1::look_ahead`]).
 fn shedding(
     source: &Source,
     stage1: &mut dyn Stage1,
     sinks: &[Box<dyn Sink>],
     options: &Options,
 ) -> Option<Duration> {
+    if source.speed().is_none() {
+        stage1.look_ahead();
+    }
     let (QueuePolicy::DropOldest, Some(speed)) = (options.policy, source.speed()) else {
         return None;
     };

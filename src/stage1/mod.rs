@@ -278,6 +278,12 @@ pub trait Stage1: Send {
     /// sub-frame cap). Offline runs, and live ones that lose nothing (`block`), never call
     /// this, so their output depends on their input alone.
     fn pace(&mut self, _speed: f64) {}
+
+    /// An offline run, whose frames are read as fast as the tier takes them: the tier may hold
+    /// a frame back to overlap its work on the next (the physics tier finds the next interval's
+    /// motion while it steps the current one). Each interval's batch then comes with the next
+    /// frame, or at [`Stage1::finish`]; the batches are the same. Live runs never call this.
+    fn look_ahead(&mut self) {}
 }
 
 /// What a wrapper adds to the tier it wraps (see [`Tapped`]): a look at each batch the tier
@@ -345,6 +351,10 @@ impl<T: Tap> Stage1 for Tapped<T> {
 
     fn pace(&mut self, speed: f64) {
         self.tier.pace(speed)
+    }
+
+    fn look_ahead(&mut self) {
+        self.tier.look_ahead()
     }
 }
 

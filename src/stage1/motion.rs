@@ -144,6 +144,8 @@ pub struct Subframes {
     moving: Vec<bool>,
     /// The sub-frames of the last interval: time and linear luminance.
     frames: Vec<(i64, Vec<u16>)>,
+    /// `frames` and `moving` hold the last computation's sub-frames.
+    ready: bool,
     stats: MotionStats,
 }
 
@@ -175,6 +177,7 @@ impl Subframes {
             ok1: Vec::new(),
             moving: Vec::new(),
             frames: Vec::new(),
+            ready: false,
             stats: MotionStats {
                 cap: max_subframes,
                 ..Default::default()
@@ -207,9 +210,28 @@ impl Subframes {
         t1: i64,
         tile: usize,
     ) -> (&[(i64, Vec<u16>)], &[bool]) {
-        let k = self.intervals(f0, scale0, f1, t1 - t0, tile);
+        let k = self.compute(f0, scale0, f1, t0, t1, tile);
         if k <= 1 {
             return (&[], &[]);
+        }
+        (&self.frames, &self.moving)
+    }
+
+    /// What [`Subframes::between`] finds, kept in `self` until [`Subframes::take`]; returns
+    /// the number of intervals (1: no sub-frames).
+    pub fn compute(
+        &mut self,
+        f0: &[u16],
+        scale0: f32,
+        f1: &[u16],
+        t0: i64,
+        t1: i64,
+        tile: usize,
+    ) -> usize {
+        let k = self.intervals(f0, scale0, f1, t1 - t0, tile);
+        self.ready = k > 1;
+        if k <= 1 {
+            return 1;
         }
         self.stats.subframes += k as u64 - 1;
         self.frames.resize_with(k - 1, || (0, Vec::new()));
@@ -220,7 +242,31 @@ impl Subframes {
             self.synthesize(f0, scale0, f1, tau as f32, tile, luma);
         }
         self.frames = frames;
-        (&self.frames, &self.moving)
+        k
+    }
+
+    /// The last [`Subframes::compute`]'s sub-frames and tiles, moved out (empty where it found
+    /// none); [`Subframes::give_back`] returns their buffers for reuse.
+    pub fn take(&mut self) -> Subframed {
+        if !std::mem::take(&mut self.ready) {
+            return Subframed::default();
+        }
+        Subframed {
+            frames: std::mem::take(&mut self.frames),
+            moving: std::mem::take(&mut self.moving),
+        }
+    }
+
+    /// Buffers of an earlier [`Subframes::take`], to be reused.
+    pub fn give_back(&mut self, used: Subframed) {
+        if self.frames.is_empty() && !self.ready {
+            self.frames = used.frames;
+        }
+    }
+
+    /// The counters as they were at `stats` (a computation whose result was not used).
+    pub fn restore_stats(&mut self, stats: MotionStats) {
+        self.stats = stats;
     }
 
     /// In a live run, the wall time the last interval (`interval_us` of frame time) took;
@@ -536,6 +582,16 @@ impl<'a> Blend<'a> {
             out[j] = (v + 0.5).clamp(0.0, 65535.0) as u16;
         }
     }
+}
+
+/// Sub-frames moved out of [`Subframes`] (see [`Subframes::take`]): their times and linear
+/// luminance, in time order, and the tiles they cover. Empty where the interval needs none.
+#[derive(Debug, Default)]
+pub struct Subframed {
+    /// Time and luminance of each sub-frame.
+    pub frames: Vec<(i64, Vec<u16>)>,
+    /// Per tile: the sub-frames cover it.
+    pub moving: Vec<bool>,
 }
 
 /// Keeps a live run's sub-frame cap where Stage 1 keeps up with the frames: the cap halves

@@ -67,6 +67,7 @@
 //! The same seed gives the same events; mismatch and hot pixels are drawn from it once, noise
 //! from it and the frame index.
 
+mod ahead;
 mod config;
 mod crossings;
 mod stats;
@@ -75,7 +76,7 @@ use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal, Poisson};
 use rand_xoshiro::Xoshiro256PlusPlus;
 
-use super::motion::{Motion, Subframes};
+use super::motion::{Motion, MotionStats, Subframed, Subframes};
 use crate::error::{Error, Result};
 use crate::event::{sort_events, Event};
 use crate::frame::{Frame, FULL_SCALE};
@@ -118,8 +119,16 @@ pub struct PhysicsSim {
     first_exposure: Option<u32>,
     /// A frame without an exposure under `light = "exposure"` has been reported.
     warned_exposure: bool,
-    /// Sub-frames along the flow (`motion = "flow"`).
+    /// Sub-frames along the flow (`motion = "flow"`); away while the worker has it.
     motion: Option<Subframes>,
+    /// The motion model's counters as they were when it left for the worker.
+    motion_stats: MotionStats,
+    /// Buffers of the last interval's sub-frames, for the motion model to reuse.
+    spare: Option<Subframed>,
+    /// An offline run: the next interval's motion is found while this one is stepped.
+    look_ahead: bool,
+    /// The worker that finds it, once started.
+    ahead: Option<ahead::Ahead>,
     /// Scratch: which tiles of the band being advanced are active.
     band: Vec<bool>,
     /// Scratch: the slow pixels of the band being advanced.
@@ -286,6 +295,10 @@ impl PhysicsSim {
         };
         Ok(PhysicsSim {
             motion,
+            motion_stats: MotionStats::default(),
+            spare: None,
+            look_ahead: false,
+            ahead: None,
             slow: Vec::new(),
             band: Vec::new(),
             lanes: Vec::new(),
@@ -319,6 +332,8 @@ impl PhysicsSim {
         let mut stats = self.stats;
         if let Some(m) = &self.motion {
             stats.motion = m.stats();
+        } else if self.cfg.motion == Motion::Flow {
+            stats.motion = self.motion_stats;
         }
         stats
     }
@@ -327,14 +342,38 @@ impl PhysicsSim {
     /// of `motion = "flow"` follows the time each interval takes, so the program lowers its
     /// accuracy before the pipeline has to drop frames (see [`Subframes::spent`]).
     pub fn pace(&mut self, speed: f64) {
+        self.look_ahead = false;
         if let Some(m) = &mut self.motion {
             m.pace(speed);
         }
     }
 
+    /// An offline run: [`PhysicsSim::step_next`] finds the next interval's motion on a thread
+    /// of its own while it steps the current one (see [`ahead`]). Not for a paced run.
+    pub fn look_ahead(&mut self) {
+        self.look_ahead = self.motion.is_some();
+    }
+
+    /// [`PhysicsSim::look_ahead`] was called and there is a motion model to look ahead with.
+    pub fn looks_ahead(&self) -> bool {
+        self.look_ahead
+    }
+
     /// Takes the next frame and appends the events of the interval since the previous one to
     /// `out`, sorted by [`Event::order_key`]. The first frame only sets the state.
     pub fn step(&mut self, frame: &Frame, out: &mut Vec<Event>) -> Result<()> {
+        self.step_next(frame, None, out)
+    }
+
+    /// [`PhysicsSim::step`], told the frame that comes after `frame` where it is known, so
+    /// that the next interval's motion can be found while this one is stepped (after
+    /// [`PhysicsSim::look_ahead`]). The events are the same as without.
+    pub fn step_next(
+        &mut self,
+        frame: &Frame,
+        next: Option<&Frame>,
+        out: &mut Vec<Event>,
+    ) -> Result<()> {
         let n = self.width as usize * self.height as usize;
         if (frame.width, frame.height) != (self.width, self.height) || frame.luma.len() != n {
             return Err(Error::invalid(
@@ -399,17 +438,17 @@ impl PhysicsSim {
         let started = std::time::Instant::now();
         let start = out.len();
         let mut stepped = false;
-        if let Some(mut motion) = self.motion.take() {
-            // `prev_luma` is in the previous frame's units of light, the sub-frames in this
-            // frame's (an exposure change between them is not a change of light).
-            let scale0 = (g / before) as f32;
-            let tile = self.cfg.tile as usize;
-            let (subframes, moving) =
-                motion.between(&self.prev_luma, scale0, &frame.luma, t0, frame.t, tile);
-            if !subframes.is_empty() {
+        // `prev_luma` is in the previous frame's units of light, the sub-frames in this
+        // frame's (an exposure change between them is not a change of light).
+        let scale0 = (g / before) as f32;
+        if let Some(mut motion) = self.motion_for(frame, scale0, t0)? {
+            let used = motion.take();
+            self.send_ahead(motion, frame, next, g);
+            if !used.frames.is_empty() {
                 // Through the sub-frames where the scene moves, at once elsewhere.
+                let moving = &used.moving;
                 let mut t = t0;
-                for (t_sub, luma) in subframes {
+                for (t_sub, luma) in &used.frames {
                     self.advance(luma, t, *t_sub, Some((moving, true)), out);
                     t = *t_sub;
                 }
@@ -417,7 +456,7 @@ impl PhysicsSim {
                 self.advance(&frame.luma, t0, frame.t, Some((moving, false)), out);
                 stepped = true;
             }
-            self.motion = Some(motion);
+            self.spare = Some(used);
         }
         if !stepped {
             self.advance(&frame.luma, t0, frame.t, None, out);
@@ -431,6 +470,89 @@ impl PhysicsSim {
             motion.spent(started.elapsed().as_secs_f64(), frame.t - t0);
         }
         Ok(())
+    }
+
+    /// The motion model with the sub-frames of the interval from `t0` to `frame` computed:
+    /// those the worker found ahead if it found them from exactly these inputs, else found
+    /// here. `None` without a motion model.
+    fn motion_for(&mut self, frame: &Frame, scale0: f32, t0: i64) -> Result<Option<Subframes>> {
+        let tile = self.cfg.tile as usize;
+        let mut motion = match self.ahead.as_mut().map(|a| a.wait()).transpose()?.flatten() {
+            Some(done) => {
+                let job = done.job;
+                let same = (job.t0, job.t1) == (t0, frame.t)
+                    && job.scale0.to_bits() == scale0.to_bits()
+                    && job.tile == tile
+                    && job.f0 == self.prev_luma
+                    && job.f1 == frame.luma;
+                let mut motion = job.motion;
+                if same {
+                    return Ok(Some(motion));
+                }
+                motion.restore_stats(done.before);
+                motion
+            }
+            None => match self.motion.take() {
+                Some(motion) => motion,
+                None => return Ok(None),
+            },
+        };
+        if let Some(used) = self.spare.take() {
+            motion.give_back(used);
+        }
+        motion.compute(&self.prev_luma, scale0, &frame.luma, t0, frame.t, tile);
+        Ok(Some(motion))
+    }
+
+    /// Hands `motion` to the worker with the interval from `frame` to `next` when looking
+    /// ahead, or keeps it. `g`: `frame`'s light scale.
+    fn send_ahead(&mut self, mut motion: Subframes, frame: &Frame, next: Option<&Frame>, g: f64) {
+        self.motion_stats = motion.stats();
+        let next =
+            next.filter(|n| self.look_ahead && n.t > frame.t && n.luma.len() == frame.luma.len());
+        let (Some(next), Some(scale0)) = (next, next.and_then(|n| self.next_scale(n, g))) else {
+            self.motion = Some(motion);
+            return;
+        };
+        if self.ahead.is_none() {
+            match ahead::Ahead::start() {
+                Ok(a) => self.ahead = Some(a),
+                Err(e) => {
+                    tracing::warn!("{e}: the motion is found in turn");
+                    self.look_ahead = false;
+                    self.motion = Some(motion);
+                    return;
+                }
+            }
+        }
+        if let Some(used) = self.spare.take() {
+            motion.give_back(used);
+        }
+        let job = ahead::Job {
+            motion,
+            f0: frame.luma.clone(),
+            scale0,
+            f1: next.luma.clone(),
+            t0: frame.t,
+            t1: next.t,
+            tile: self.cfg.tile as usize,
+        };
+        if let Some(Err(job)) = self.ahead.as_mut().map(|a| a.send(job)) {
+            self.motion = Some(job.motion);
+        }
+    }
+
+    /// The factor that will bring `frame`'s light into `next`'s units at the next step
+    /// ([`PhysicsSim::frame_light`]'s scale of `next` over `g`), if it can be told now: not
+    /// before the scene's level is set (the frame that sets it starts the pixels over).
+    fn next_scale(&self, next: &Frame, g: f64) -> Option<f32> {
+        let reference = self.reference?;
+        let exposure = next.exposure_us.filter(|&e| e > 0);
+        let ratio = match (exposure, self.first_exposure.or(exposure)) {
+            (Some(e), Some(e0)) => e as f64 / e0 as f64,
+            _ => 1.0,
+        };
+        Some(((reference * ratio).clamp(1e-4, 1e4) / g) as f32)
     }
 
     /// Moves the pixels from their state at `t0` to the light `luma` at `t1` (the tiles whose
@@ -747,6 +869,10 @@ pub struct PhysicsStage1 {
     earlier: PhysicsStats,
     /// A live run's speed (see [`super::Stage1::pace`]), kept across restarts.
     speed: Option<f64>,
+    /// An offline run with motion: one frame is held back (see [`super::Stage1::look_ahead`]).
+    look_ahead: bool,
+    /// The frame held back.
+    held: Option<Frame>,
 }
 
 impl PhysicsStage1 {
@@ -775,17 +901,25 @@ impl PhysicsStage1 {
             scratch: Vec::new(),
             earlier: PhysicsStats::default(),
             speed: None,
+            look_ahead: false,
+            held: None,
         })
     }
 }
 
-impl super::Stage1 for PhysicsStage1 {
-    fn push(&mut self, frame: &Frame, out: &mut Vec<super::Stage1Batch>) -> Result<()> {
+impl PhysicsStage1 {
+    /// Steps `frame` (with the frame after it, where known) and appends its interval's batch.
+    fn process(
+        &mut self,
+        frame: &Frame,
+        next: Option<&Frame>,
+        out: &mut Vec<super::Stage1Batch>,
+    ) -> Result<()> {
         let previous = self.previous.replace(frame.t);
         match (&mut self.voxelizer, previous) {
             (Some(voxelizer), Some(t0)) => {
                 self.scratch.clear();
-                self.sim.step(frame, &mut self.scratch)?;
+                self.sim.step_next(frame, next, &mut self.scratch)?;
                 // Events of (t0, t1] voxelized on [t0, t1): one at t1 lands on the last node.
                 let interval = crate::interval::Interval::new(t0, frame.t)?;
                 let mut grid = crate::voxel::VoxelGrid::new(self.size.0, self.size.1, self.bins)?;
@@ -795,11 +929,11 @@ impl super::Stage1 for PhysicsStage1 {
             (_, None) => {
                 // The first frame only sets the pixels: no interval ends here.
                 self.scratch.clear();
-                self.sim.step(frame, &mut self.scratch)?;
+                self.sim.step_next(frame, next, &mut self.scratch)?;
             }
             (None, Some(_)) => {
                 let mut events = Vec::new();
-                self.sim.step(frame, &mut events)?;
+                self.sim.step_next(frame, next, &mut events)?;
                 out.push(super::Stage1Batch::Events {
                     events,
                     end: frame.t,
@@ -808,21 +942,42 @@ impl super::Stage1 for PhysicsStage1 {
         }
         Ok(())
     }
+}
 
-    fn finish(&mut self, _out: &mut Vec<super::Stage1Batch>) -> Result<()> {
-        // Every interval is emitted when its frame arrives: nothing is held.
-        Ok(())
+impl super::Stage1 for PhysicsStage1 {
+    fn push(&mut self, frame: &Frame, out: &mut Vec<super::Stage1Batch>) -> Result<()> {
+        if !self.look_ahead {
+            return self.process(frame, None, out);
+        }
+        // One frame held back: its interval is stepped once the next frame is known.
+        let held = self.held.replace(frame.clone());
+        match held {
+            Some(held) => self.process(&held, Some(frame), out),
+            None => Ok(()),
+        }
+    }
+
+    fn finish(&mut self, out: &mut Vec<super::Stage1Batch>) -> Result<()> {
+        // Every interval is emitted when its frame arrives, or with the next one when
+        // looking ahead: the frame held back goes now.
+        match self.held.take() {
+            Some(held) => self.process(&held, None, out),
+            None => Ok(()),
+        }
     }
 
     /// The sensor's fixed pattern (threshold mismatch, hot pixels) stays the same, since it
     /// comes from the same seed.
     fn restart(&mut self) -> Result<()> {
         let mut earlier = self.counters();
-        let speed = self.speed;
+        let (speed, look_ahead) = (self.speed, self.look_ahead);
         *self = PhysicsStage1::new(&self.config, self.bins, self.size)?;
         std::mem::swap(&mut self.earlier, &mut earlier);
         if let Some(speed) = speed {
             super::Stage1::pace(self, speed);
+        }
+        if look_ahead {
+            super::Stage1::look_ahead(self);
         }
         Ok(())
     }
@@ -844,7 +999,15 @@ impl super::Stage1 for PhysicsStage1 {
 
     fn pace(&mut self, speed: f64) {
         self.speed = Some(speed);
+        self.look_ahead = false;
         self.sim.pace(speed);
+    }
+
+    fn look_ahead(&mut self) {
+        if self.speed.is_none() {
+            self.sim.look_ahead();
+            self.look_ahead = self.sim.looks_ahead();
+        }
     }
 
     fn describe(&self) -> String {
