@@ -196,29 +196,12 @@ impl Subframes {
         self.live = (speed.is_finite() && speed > 0.0).then(|| Governor::new(speed));
     }
 
-    /// The sub-frames between `f0` at `t0` and `f1` at `t1` (linear luminance, `f0`'s values
-    /// multiplied by `scale0` to be in `f1`'s units), in time order, strictly between the
-    /// two, with the tiles (`tile` pixels square, row-major) they cover: those where some pixel
-    /// moves more than `max_step_px`; the other tiles' values in them are not set, and those
-    /// tiles need no more than linear interpolation. Empty where no tile needs more.
-    pub fn between(
-        &mut self,
-        f0: &[u16],
-        scale0: f32,
-        f1: &[u16],
-        t0: i64,
-        t1: i64,
-        tile: usize,
-    ) -> (&[(i64, Vec<u16>)], &[bool]) {
-        let k = self.compute(f0, scale0, f1, t0, t1, tile);
-        if k <= 1 {
-            return (&[], &[]);
-        }
-        (&self.frames, &self.moving)
-    }
-
-    /// What [`Subframes::between`] finds, kept in `self` until [`Subframes::take`]; returns
-    /// the number of intervals (1: no sub-frames).
+    /// Finds the sub-frames between `f0` at `t0` and `f1` at `t1` (linear luminance, `f0`'s
+    /// values multiplied by `scale0` to be in `f1`'s units), in time order, strictly between
+    /// the two, with the tiles (`tile` pixels square, row-major) they cover: those where some
+    /// pixel moves more than `max_step_px`; the other tiles' values in them are not set, and
+    /// those tiles need no more than linear interpolation. They are kept in `self` until
+    /// [`Subframes::take`]; returns the number of intervals (1: no sub-frames).
     pub fn compute(
         &mut self,
         f0: &[u16],
@@ -1044,17 +1027,9 @@ mod tests {
         // At cap 1 no flow runs (linear interpolation).
         let mut sub = Subframes::new(FlowPreset::Fast, 1.0, 1, W, H).unwrap();
         let frames = bar(2);
-        assert!(sub
-            .between(
-                &frames[0].luma,
-                1.0,
-                &frames[1].luma,
-                frames[0].t,
-                frames[1].t,
-                16
-            )
-            .0
-            .is_empty());
+        let (f0, f1) = (&frames[0], &frames[1]);
+        assert_eq!(sub.compute(&f0.luma, 1.0, &f1.luma, f0.t, f1.t, 16), 1);
+        assert!(sub.take().frames.is_empty());
         assert_eq!(sub.stats().flow_intervals, 0);
     }
 }
