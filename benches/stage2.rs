@@ -2,7 +2,7 @@
 //!
 //! Uses ../shared/data/davis346 (346 x 260, APS frame intervals) and dvxplorer (320 x 240, 30 fps
 //! intervals) when present (or `V2CE_DATA`); otherwise the built-in synthetic scene at 346 x 260,
-//! and says so. Throughput is reported in intervals per second.
+//! and says so; and the synthetic scene at 1280 x 720 always. Throughput is reported in intervals per second.
 
 use std::path::PathBuf;
 
@@ -46,7 +46,13 @@ fn cases() -> Vec<Case> {
             });
         }
     }
-    if out.is_empty() {
+    // Always: the synthetic scene at 1280 x 720 (an HD sensor's cost per interval).
+    out.push(Case {
+        name: "synthetic1280x720",
+        recording: v2ce::sweeping_bar::recording(1280, 720, 1_000_000, 1),
+        intervals: fixed_intervals(0, 999_999, 30.0).expect("valid rate"),
+    });
+    if out.len() == 1 {
         eprintln!(
             "no recordings under {}: benchmarking the synthetic scene",
             dir.display()

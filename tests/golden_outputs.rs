@@ -75,6 +75,11 @@ const CASES: &[Case] = &[
     ),
     case(
         "convert-fixture-csv-voxels-moment",
+        "convert {F} -o {O} --mode voxels --sampler moment --seed 1 --max-frames 50",
+        "a.csv",
+    ),
+    case(
+        "convert-fixture-csv-voxels-spatial",
         "convert {F} -o {O} --mode voxels --seed 1 --max-frames 50",
         "a.csv",
     ),

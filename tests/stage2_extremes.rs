@@ -156,7 +156,11 @@ fn absolute_times_past_2_pow_32_and_10_days() {
             .map(|&o| Event::new(start + o, 2, 1, true))
             .collect();
         let grid = voxelize(&truth, iv, 4, 4, 10).unwrap();
-        for kind in [SamplerKind::Ldati, SamplerKind::Moment] {
+        for kind in [
+            SamplerKind::Ldati,
+            SamplerKind::Moment,
+            SamplerKind::Spatial,
+        ] {
             let out = sample(kind, &grid, iv);
             assert_eq!(out.len(), 4);
             for (o, t) in out.iter().zip(&truth) {
@@ -167,10 +171,14 @@ fn absolute_times_past_2_pow_32_and_10_days() {
 }
 
 #[test]
-fn one_by_one_and_1280_by_720_sensors() {
+fn one_by_one_1280_by_720_and_8192_wide_sensors() {
     let iv = Interval::new(0, 33_333).unwrap();
     let mut rng = Xoshiro256PlusPlus::seed_from_u64(1);
-    for (w, h, n) in [(1u16, 1u16, 50usize), (1280, 720, 200_000)] {
+    for (w, h, n) in [
+        (1u16, 1u16, 50usize),
+        (1280, 720, 200_000),
+        (8192, 3, 60_000),
+    ] {
         let mut events: Vec<Event> = (0..n)
             .map(|_| {
                 Event::new(
@@ -186,7 +194,10 @@ fn one_by_one_and_1280_by_720_sensors() {
         for kind in SamplerKind::ALL {
             let out = sample(kind, &grid, iv);
             assert!(out.iter().all(|e| e.x < w && e.y < h));
-            if matches!(kind, SamplerKind::Ldati | SamplerKind::Moment) {
+            if matches!(
+                kind,
+                SamplerKind::Ldati | SamplerKind::Moment | SamplerKind::Spatial
+            ) {
                 assert_eq!(out.len(), n, "{kind} {w}x{h}");
             }
         }

@@ -45,7 +45,7 @@ proptest! {
             .map(|e| Event { t: start + e.t % dur, ..e })
             .collect();
         let grid = voxelize(&events, iv, W, H, 10).unwrap();
-        for kind in [SamplerKind::Ldati, SamplerKind::LdatiRandom, SamplerKind::Moment] {
+        for kind in [SamplerKind::Ldati, SamplerKind::LdatiRandom, SamplerKind::Moment, SamplerKind::Spatial] {
             let out = run(kind, &grid, iv);
             prop_assert_eq!(counts(&out), counts(&events), "{}", kind);
             prop_assert!(out.iter().all(|e| iv.contains(e.t)));
@@ -94,7 +94,7 @@ proptest! {
         }
         truth.sort_by_key(|e| e.t);
         let grid = voxelize(&truth, iv, W, H, 10).unwrap();
-        for kind in [SamplerKind::Ldati, SamplerKind::LdatiRandom, SamplerKind::Moment] {
+        for kind in [SamplerKind::Ldati, SamplerKind::LdatiRandom, SamplerKind::Moment, SamplerKind::Spatial] {
             let out = run(kind, &grid, iv);
             prop_assert_eq!(out.len(), truth.len());
             for (o, t) in out.iter().zip(&truth) {

@@ -587,7 +587,7 @@ fn voxelize<'py>(
 
 /// Events re-timed from voxels `(intervals, 2 * bins, H, W)` by a Stage 2 sampler.
 #[pyfunction]
-#[pyo3(signature = (voxels, frame_times_us, sampler="moment", seed=0))]
+#[pyo3(signature = (voxels, frame_times_us, sampler="spatial", seed=0))]
 fn sample<'py>(
     py: Python<'py>,
     voxels: numpy::PyReadonlyArray4<'py, f32>,
@@ -669,7 +669,7 @@ fn eval_stage1(
 /// `v2ce eval stage2`'s scores: `events` voxelized per frame interval, re-timed by the sampler
 /// and compared with themselves, as JSON.
 #[pyfunction]
-#[pyo3(signature = (events, frame_times_us, width, height, sampler="moment", bins=10, seed=0))]
+#[pyo3(signature = (events, frame_times_us, width, height, sampler="spatial", bins=10, seed=0))]
 #[allow(clippy::too_many_arguments)]
 fn eval_stage2(
     py: Python<'_>,

@@ -276,7 +276,7 @@ def test_voxels_round_trip_through_every_sampler_with_exact_counts():
     vox = v2ce.voxelize(events, times, bins=10)
     assert vox.shape == (7, 20, 48, 64) and vox.dtype == np.float32
     assert abs(vox.sum() - len(events)) < 1e-3 * len(events)
-    for sampler in ["moment", "ldati", "ldati-random", "even", "random"]:
+    for sampler in ["spatial", "moment", "ldati", "ldati-random", "even", "random"]:
         back = v2ce.sample(vox, times, sampler=sampler, seed=1)
         assert np.all(np.diff(back["t"]) >= 0), sampler
         same_seed = v2ce.sample(vox, times, sampler=sampler, seed=1)
@@ -293,6 +293,8 @@ def test_voxels_round_trip_through_every_sampler_with_exact_counts():
         assert np.allclose(per_cell(again), per_cell(vox), atol=1e-3), sampler
     report = v2ce.eval_stage2(events, times, sampler="moment")
     assert report["sampler"] == "moment" and report["pger"] == 1.0
+    report = v2ce.eval_stage2(events, times)
+    assert report["sampler"] == "spatial" and report["pger"] == 1.0
     with pytest.raises(ValueError, match="voxel grids"):
         v2ce.sample(vox, times[:5])
     with pytest.raises(ValueError):

@@ -40,8 +40,8 @@ pub struct ConvertArgs {
     /// default: events].
     #[arg(long, value_parser = ["events", "voxels"])]
     pub(crate) mode: Option<String>,
-    /// Stage 2 sampler for --mode voxels: moment, ldati, ldati-random, even, random [config
-    /// default: moment].
+    /// Stage 2 sampler for --mode voxels: spatial, moment, ldati, ldati-random, even, random
+    /// [config default: spatial].
     #[arg(long)]
     pub(crate) sampler: Option<SamplerKind>,
     /// Seed of mismatch, noise and sampling [config default: 0].

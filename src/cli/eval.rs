@@ -70,7 +70,7 @@ pub struct Stage2Args {
     /// Fixed frame rate for the intervals, starting at the first event.
     #[arg(long)]
     pub(crate) fps: Option<f64>,
-    /// Sampler: moment (default), ldati, ldati-random, even, random.
+    /// Sampler: spatial (default), moment, ldati, ldati-random, even, random.
     #[arg(long)]
     pub(crate) sampler: Option<SamplerKind>,
     /// Seed of the sampler's random draws.

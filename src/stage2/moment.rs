@@ -92,7 +92,7 @@ fn place(base: f64, m: u64, sum: f64, out: &mut Vec<f64>) {
 }
 
 /// Fills `scratch.cumulative` with `V_i` (i < K) and `scratch.through` with the chosen `M_i`.
-fn cumulative_counts(nodes: &[f64], scratch: &mut Scratch) {
+pub(super) fn cumulative_counts(nodes: &[f64], scratch: &mut Scratch) {
     let k = nodes.len() - 1;
     let cum = &mut scratch.cumulative;
     cum.clear();

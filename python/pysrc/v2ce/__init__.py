@@ -282,10 +282,10 @@ def voxelize(
     return _v2ce.voxelize(_columns(events), _times(frame_times_us), int(w), int(h), int(bins))
 
 
-def sample(voxels: np.ndarray, frame_times_us, sampler: str = "moment", seed: int = 0) -> np.ndarray:
+def sample(voxels: np.ndarray, frame_times_us, sampler: str = "spatial", seed: int = 0) -> np.ndarray:
     """Events re-timed from voxels ``(intervals, 2 * bins, H, W)`` (``len(frame_times_us)`` is
-    one more than the intervals) by a Stage 2 sampler: ``moment`` (the default), ``ldati``,
-    ``ldati-random``, ``even`` or ``random``. Every cell's count is kept."""
+    one more than the intervals) by a Stage 2 sampler: ``spatial`` (the default), ``moment``,
+    ``ldati``, ``ldati-random``, ``even`` or ``random``. Every cell's count is kept."""
     v = np.ascontiguousarray(voxels, dtype=np.float32)
     if v.ndim != 4:
         raise ValueError(f"voxels: {v.ndim} dimensions; expected (intervals, 2 * bins, H, W)")
@@ -302,7 +302,7 @@ def eval_stage1(real: np.ndarray, sim: np.ndarray, frame_times_us,
                                         int(w), int(h)))
 
 
-def eval_stage2(events: np.ndarray, frame_times_us, sampler: str = "moment", bins: int = 10,
+def eval_stage2(events: np.ndarray, frame_times_us, sampler: str = "spatial", bins: int = 10,
                 seed: int = 0, size: Optional[Size] = None) -> dict:
     """``v2ce eval stage2``'s scores: the events voxelized per frame interval, re-timed by
     ``sampler`` and compared with themselves (C-METE, METE, PGER, timings)."""

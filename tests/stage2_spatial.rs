@@ -1,0 +1,94 @@
+//! The `spatial` sampler against `moment` on a scene whose every event time is known: an edge
+//! crossing the sensor at a steady speed, each pixel firing a run of evenly spaced events as
+//! the edge's blurred ramp passes it (as a DVS pixel does while its log intensity climbs
+//! through one threshold after another).
+
+use v2ce::metrics::stage2::Stage2Scorer;
+use v2ce::{voxelize, Event, Interval, SamplerKind};
+
+const W: u16 = 96;
+const H: u16 = 24;
+const BINS: usize = 10;
+
+/// Edge runs of `per_pixel` events over `ramp_us`, the edge moving `speed` px/s from x = 0 at
+/// `t0`; one interval of `duration` us. Returns the interval and its events, time-sorted.
+fn moving_edge(per_pixel: u32, ramp_us: f64, speed: f64, duration: i64) -> (Interval, Vec<Event>) {
+    let t0 = 1_000_000i64;
+    let interval = Interval::new(t0, t0 + duration).expect("a valid interval");
+    let mut events = Vec::new();
+    for y in 0..H {
+        // Each row's edge a little behind the last (a slanted edge), so rows differ.
+        let lag = y as f64 * 150.0;
+        for x in 0..W {
+            let arrive = x as f64 / speed * 1e6 + lag;
+            for k in 0..per_pixel {
+                let t = t0 + (arrive + (k as f64 + 0.5) * ramp_us / per_pixel as f64) as i64;
+                if interval.contains(t) {
+                    events.push(Event::new(t, x, y, true));
+                }
+            }
+        }
+    }
+    events.sort_by_key(|e| (e.t, e.y, e.x));
+    (interval, events)
+}
+
+fn c_mete(kind: SamplerKind, interval: Interval, truth: &[Event]) -> (f64, usize) {
+    let grid = voxelize(truth, interval, W, H, BINS).expect("voxelize");
+    let mut out = Vec::new();
+    let repaired = kind.build(0).sample(&grid, interval, &mut out);
+    assert!(!repaired.any());
+    let mut scorer = Stage2Scorer::new();
+    scorer.add_interval(interval, truth, &out);
+    (scorer.finish().c_mete_us, out.len())
+}
+
+#[test]
+fn a_moving_edge_is_timed_at_least_twice_as_well_as_by_moment() {
+    // Runs of 4 to 6 events over 3 to 6 ms, sub-intervals of 3.7 ms: most pixels hold two or
+    // more events in some sub-interval, where `moment` can only guess their spread.
+    for (per_pixel, ramp_us, speed) in [
+        (4, 3_000.0, 3_000.0),
+        (5, 6_000.0, 3_000.0),
+        (6, 4_500.0, 2_900.0),
+    ] {
+        let (interval, truth) = moving_edge(per_pixel, ramp_us, speed, 33_333);
+        assert!(truth.len() > 5_000, "{} events", truth.len());
+        let (moment, n_moment) = c_mete(SamplerKind::Moment, interval, &truth);
+        let (spatial, n_spatial) = c_mete(SamplerKind::Spatial, interval, &truth);
+        // Counts are exact for both.
+        assert_eq!((n_moment, n_spatial), (truth.len(), truth.len()));
+        println!(
+            "{per_pixel} events over {ramp_us} us: moment {moment:.1} us, spatial {spatial:.1} us"
+        );
+        assert!(
+            moment > 20.0,
+            "moment's error {moment} us: the scene is too easy"
+        );
+        assert!(
+            spatial <= moment / 2.0,
+            "{per_pixel} events over {ramp_us} us: spatial {spatial:.1} us, moment {moment:.1} us"
+        );
+    }
+}
+
+#[test]
+fn the_same_voxel_gives_the_same_events_whatever_the_cell_order() {
+    let (interval, truth) = moving_edge(5, 6_000.0, 3_000.0, 33_333);
+    let grid = voxelize(&truth, interval, W, H, BINS).expect("voxelize");
+    // The same cells pushed in reverse order.
+    let cells: Vec<_> = grid
+        .cells()
+        .map(|c| (c.x, c.y, c.on, c.values.to_vec()))
+        .collect();
+    let mut reversed = v2ce::VoxelGrid::new(W, H, BINS).expect("grid");
+    for (x, y, on, values) in cells.iter().rev() {
+        reversed.push_cell(*x, *y, *on, values).expect("cell");
+    }
+    let sampler = SamplerKind::Spatial.build(7);
+    let (mut a, mut b) = (Vec::new(), Vec::new());
+    sampler.sample(&grid, interval, &mut a);
+    sampler.sample(&reversed, interval, &mut b);
+    assert_eq!(a, b);
+    assert_eq!(a.len(), truth.len());
+}
