@@ -92,3 +92,39 @@ fn the_same_voxel_gives_the_same_events_whatever_the_cell_order() {
     assert_eq!(a, b);
     assert_eq!(a.len(), truth.len());
 }
+
+#[test]
+fn a_sensor_firing_tight_pairs_is_timed_from_its_own_stream() {
+    // Every pixel of a 200 x 100 sensor fires one pair 150 us apart at a random time: no pixel
+    // has a neighbour in time, and its spatial neighbours fire at unrelated times. The pairs that
+    // happen to straddle a sub-interval's boundary show the spacing (step 4 of the sampler).
+    use rand::{Rng, SeedableRng};
+    let (w, h) = (200u16, 100u16);
+    let interval = Interval::new(0, 33_333).expect("interval");
+    let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(28);
+    let mut truth = Vec::new();
+    for y in 0..h {
+        for x in 0..w {
+            let t = rng.gen_range(0..33_333 - 150);
+            truth.push(Event::new(t, x, y, true));
+            truth.push(Event::new(t + 150, x, y, true));
+        }
+    }
+    truth.sort_by_key(|e| (e.t, e.y, e.x));
+    let score = |kind: SamplerKind| {
+        let grid = voxelize(&truth, interval, w, h, BINS).expect("voxelize");
+        let mut out = Vec::new();
+        kind.build(0).sample(&grid, interval, &mut out);
+        assert_eq!(out.len(), truth.len(), "{kind}");
+        let mut scorer = Stage2Scorer::new();
+        scorer.add_interval(interval, &truth, &out);
+        scorer.finish().c_mete_us
+    };
+    let (moment, spatial) = (score(SamplerKind::Moment), score(SamplerKind::Spatial));
+    println!("tight pairs: moment {moment:.1} us, spatial {spatial:.1} us");
+    assert!(moment > 100.0, "moment {moment} us: the scene is too easy");
+    assert!(
+        spatial <= moment / 2.0,
+        "spatial {spatial:.1} us, moment {moment:.1} us"
+    );
+}

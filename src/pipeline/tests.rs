@@ -83,10 +83,14 @@ fn a_live_run_behind_its_lag_budget_sheds_frames_before_stage1_and_block_never_d
             ..Options::default()
         };
         // 120 frames of 5 ms at 50 times real time: a frame every 0.1 ms, faster than
-        // Stage 1 takes them.
+        // Stage 1 takes them. The edge crosses the frame over the whole replay (100 px/s), so
+        // every interval, however many are folded into it, holds its events (with `edge`'s,
+        // gone after 41 ms, the last events were noise, and how late they fell depended on
+        // which frames a loaded machine shed).
+        let scene = SceneSource::moving_edge(64, 48, 200.0, 120, 2.0, 100.0, (0.1, 0.8));
         let source = Source {
             pace: Some(50.0),
-            ..Source::file(edge(120))
+            ..Source::file(Box::new(scene))
         };
         let report = run_with(source, vec![sink], &options);
         let got = got.lock().unwrap();
