@@ -3,6 +3,8 @@
 //! the edge's blurred ramp passes it (as a DVS pixel does while its log intensity climbs
 //! through one threshold after another).
 
+mod common;
+
 use v2ce::metrics::stage2::Stage2Scorer;
 use v2ce::{voxelize, Event, Interval, SamplerKind};
 
@@ -127,4 +129,70 @@ fn a_sensor_firing_tight_pairs_is_timed_from_its_own_stream() {
         spatial <= moment / 2.0,
         "spatial {spatial:.1} us, moment {moment:.1} us"
     );
+}
+
+/// `eval stage2`'s score of the default sampler on dvxplorer, recomputed by numpy
+/// (`tools/stage2_numpy.py --predicted`) from the events it wrote: the metric, independently.
+#[test]
+fn numpy_scores_the_default_sampler_on_dvxplorer_as_eval_does() {
+    let data = data_or_skip!("numpy_scores_the_default_sampler_on_dvxplorer_as_eval_does");
+    let python = python_or_skip!("numpy_scores_the_default_sampler_on_dvxplorer_as_eval_does");
+    let dir = common::temp_dir("stage2_numpy");
+    let (truth, predicted) = (dir.join("truth.csv"), dir.join("predicted.csv"));
+    let v2ce = env!("CARGO_BIN_EXE_v2ce");
+    let recording = data.join("dvxplorer/data_sample.aedat4");
+    let run = |args: &[&std::ffi::OsStr]| {
+        let out = std::process::Command::new(v2ce)
+            .args(args)
+            .output()
+            .expect("v2ce runs");
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        String::from_utf8_lossy(&out.stdout).into_owned()
+    };
+    run(&[
+        "transcode".as_ref(),
+        recording.as_os_str(),
+        truth.as_os_str(),
+    ]);
+    let ours: serde_json::Value = serde_json::from_str(&run(&[
+        "eval".as_ref(),
+        "stage2".as_ref(),
+        "--events".as_ref(),
+        recording.as_os_str(),
+        "--fps".as_ref(),
+        "30".as_ref(),
+        "--json".as_ref(),
+        "--write-events".as_ref(),
+        predicted.as_os_str(),
+    ]))
+    .expect("one JSON object");
+    let tool = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tools/stage2_numpy.py");
+    let out = std::process::Command::new(python)
+        .arg(tool)
+        .arg(&truth)
+        .arg("--predicted")
+        .arg(&predicted)
+        .output()
+        .expect("python runs");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let numpy: serde_json::Value =
+        serde_json::from_slice(&out.stdout).expect("one JSON object from numpy");
+    println!("eval: {ours}\nnumpy: {numpy}");
+    assert_eq!(ours["sampler"], "spatial");
+    for key in ["c_mete_us", "pger"] {
+        let (a, b) = (ours[key].as_f64().unwrap(), numpy[key].as_f64().unwrap());
+        assert!(
+            (a - b).abs() <= 1e-9 * a.abs().max(1.0),
+            "{key}: eval {a}, numpy {b}"
+        );
+    }
+    assert_eq!(ours["events_out"], numpy["events_out"]);
 }

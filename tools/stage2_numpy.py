@@ -9,9 +9,11 @@ the last node folded with `round`), each sub-interval's events evenly spaced aro
 distance to the nearest re-sampled event of the same pixel and polarity, capped at 3 T / 10,
 averaged, then averaged over intervals.
 
-Usage: python tools/stage2_numpy.py EVENTS.csv [--fps 30] [--bins 10]
+Usage: python tools/stage2_numpy.py EVENTS.csv [--fps 30] [--bins 10] [--predicted OUT.csv]
 (EVENTS.csv as `v2ce transcode FILE EVENTS.csv` writes it: t_us,x,y,on). Prints one JSON line:
-C-METE, PGER, the events, and the seconds spent (reading the CSV apart).
+C-METE, PGER, the events, and the seconds spent (reading the CSV apart). With --predicted
+(what `v2ce eval stage2 --write-events` wrote), those events are scored instead of its own: an
+independent check of the metric.
 """
 
 import argparse
@@ -85,8 +87,13 @@ def main():
     ap.add_argument("events")
     ap.add_argument("--fps", type=float, default=30.0)
     ap.add_argument("--bins", type=int, default=10)
+    ap.add_argument("--predicted")
     args = ap.parse_args()
     ev = np.loadtxt(args.events, delimiter=",", skiprows=1, dtype=np.int64)
+    given = None
+    if args.predicted:
+        given = np.loadtxt(args.predicted, delimiter=",", skiprows=1, dtype=np.int64)
+        given_key = (given[:, 2] << 17) | (given[:, 1] << 1) | given[:, 3]
     began = time.perf_counter()
     t, x, y, on = ev[:, 0], ev[:, 1], ev[:, 2], ev[:, 3]
     key = (y << 17) | (x << 1) | on
@@ -96,7 +103,11 @@ def main():
         lo, hi = np.searchsorted(t, [a, b])
         if hi <= lo:
             continue
-        pkey, pt = resample(t[lo:hi], key[lo:hi], a, b - a, args.bins)
+        if given is None:
+            pkey, pt = resample(t[lo:hi], key[lo:hi], a, b - a, args.bins)
+        else:
+            plo, phi = np.searchsorted(given[:, 0], [a, b])
+            pkey, pt = given_key[plo:phi], given[plo:phi, 0]
         produced += len(pt)
         metes.append(score(t[lo:hi], key[lo:hi], pt, pkey, 3.0 * (b - a) / 10.0))
         pgers.append(len(pt) / (hi - lo))
