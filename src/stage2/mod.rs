@@ -107,16 +107,28 @@ pub trait Sampler: Send + Sync {
             );
             taus.clear();
             self.sample_cell(&nodes, &mut rng, &mut scratch, &mut taus);
-            out.extend(taus.iter().map(|&tau| Event {
-                t: interval.timestamp_at(tau * scale),
-                x: cell.x,
-                y: cell.y,
-                on: cell.on,
-            }));
+            push_events(&taus, (cell.x, cell.y, cell.on), interval, scale, out);
         }
         sort_events(&mut out[first..]);
         stats
     }
+}
+
+/// Appends the events of the cell at `(x, y, on)` at node positions `taus` (`scale` us per
+/// node): [`Sampler::sample`]'s timestamps.
+fn push_events(
+    taus: &[f64],
+    (x, y, on): (u16, u16, bool),
+    interval: Interval,
+    scale: f64,
+    out: &mut Vec<Event>,
+) {
+    out.extend(taus.iter().map(|&tau| Event {
+        t: interval.timestamp_at(tau * scale),
+        x,
+        y,
+        on,
+    }));
 }
 
 /// Working memory reused across cells, so sampling a cell allocates nothing in the common case.

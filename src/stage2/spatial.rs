@@ -31,7 +31,7 @@
 
 use super::chain::ONE_BELOW;
 use super::moment::cumulative_counts;
-use super::{sanitize, CellRng, SampleStats, Sampler, Scratch};
+use super::{push_events, sanitize, CellRng, SampleStats, Sampler, Scratch};
 use crate::event::{sort_events, Event};
 use crate::interval::Interval;
 use crate::voxel::VoxelGrid;
@@ -313,12 +313,7 @@ impl Sampler for Spatial {
             for g in &groups[c.groups.clone()] {
                 place(g, &mut taus);
             }
-            out.extend(taus.iter().map(|&tau| Event {
-                t: interval.timestamp_at(tau * scale),
-                x: c.x,
-                y: c.y,
-                on: c.on,
-            }));
+            push_events(&taus, (c.x, c.y, c.on), interval, scale, out);
         }
         sort_events(&mut out[first..]);
         stats
