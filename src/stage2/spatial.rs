@@ -57,10 +57,9 @@ struct Group {
     period: f64,
 }
 
-/// The groups of one cell, its key (plane, row, column) and its pace from step 2.
+/// The groups of one cell, where it is, and its pace from step 2.
 #[derive(Debug, Clone)]
 struct CellGroups {
-    key: u64,
     x: u16,
     y: u16,
     on: bool,
@@ -68,6 +67,7 @@ struct CellGroups {
     pace: f64,
 }
 
+/// A cell's place in key order: plane, row, column.
 fn cell_key(on: bool, x: u16, y: u16) -> u64 {
     ((!on as u64) << 32) | ((y as u64) << 16) | x as u64
 }
@@ -252,7 +252,6 @@ impl Sampler for Spatial {
             let start = groups.len();
             let pace = groups_of(&nodes, &mut scratch, &mut groups, &mut gaps);
             cells.push(CellGroups {
-                key: cell_key(cell.on, cell.x, cell.y),
                 x: cell.x,
                 y: cell.y,
                 on: cell.on,
@@ -264,7 +263,7 @@ impl Sampler for Spatial {
         let mut paces: Vec<(u64, f64)> = cells
             .iter()
             .filter(|c| c.pace.is_finite())
-            .map(|c| (c.key, c.pace))
+            .map(|c| (cell_key(c.on, c.x, c.y), c.pace))
             .collect();
         paces.sort_unstable_by_key(|&(k, _)| k);
         let (w, h) = (voxels.width() as i32, voxels.height() as i32);
