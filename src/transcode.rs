@@ -26,8 +26,33 @@ pub struct TranscodeReport {
 fn output_size(input: &Path, size: Option<(u16, u16)>) -> Result<(u16, u16)> {
     match size.or(format::open(input)?.size()) {
         Some(s) => Ok(s),
-        None => Ok(summarize(input)?.extent),
+        // The pass that writes reads the same input and gives its warnings: this one keeps quiet.
+        None => Ok(tracing::subscriber::with_default(Quiet, || summarize(input))?.extent),
     }
+}
+
+/// A subscriber that records nothing. Unlike `tracing`'s own `NoSubscriber`, it leaves every
+/// callsite asking each time, so a warning first seen here still reaches the real subscriber.
+struct Quiet;
+
+impl tracing::Subscriber for Quiet {
+    fn register_callsite(
+        &self,
+        _: &'static tracing::Metadata<'static>,
+    ) -> tracing::subscriber::Interest {
+        tracing::subscriber::Interest::sometimes()
+    }
+    fn enabled(&self, _: &tracing::Metadata<'_>) -> bool {
+        false
+    }
+    fn new_span(&self, _: &tracing::span::Attributes<'_>) -> tracing::span::Id {
+        tracing::span::Id::from_u64(1)
+    }
+    fn record(&self, _: &tracing::span::Id, _: &tracing::span::Record<'_>) {}
+    fn record_follows_from(&self, _: &tracing::span::Id, _: &tracing::span::Id) {}
+    fn event(&self, _: &tracing::Event<'_>) {}
+    fn enter(&self, _: &tracing::span::Id) {}
+    fn exit(&self, _: &tracing::span::Id) {}
 }
 
 /// Converts `input` to `output` in `format`, streaming. `size` overrides the sensor size. The

@@ -208,9 +208,25 @@ fn transcode_and_info() {
     assert!(text.contains("format       EVT 2.0"), "{text}");
     assert!(text.contains("first event  t 100 us"), "{text}");
     // Bad input: one clear line, no panic.
-    std::fs::write(dir.join("bad.raw"), b"% evt 3.0\n% end\n\x01").unwrap();
+    // A file cut inside its first word: no events, one warning.
+    std::fs::write(dir.join("cut.raw"), b"% evt 3.0\n% end\n\x01").unwrap();
+    let out = v2ce()
+        .args(["transcode".into(), p("cut.raw"), p("cut.csv")])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert_eq!(err.matches("truncated input").count(), 1, "{err}");
+    assert_eq!(
+        std::fs::read_to_string(dir.join("cut.csv"))
+            .unwrap()
+            .lines()
+            .count(),
+        1
+    );
+    std::fs::write(dir.join("bad.raw"), b"% evt 2.1\n% end\n\x01\x02\x03\x04").unwrap();
     for (args, needle) in [
-        (vec![p("bad.raw"), p("x.csv")], "truncated"),
+        (vec![p("bad.raw"), p("x.csv")], "'evt 2.1' is not supported"),
         (vec![p("in.csv"), p("x.mp4")], ".mp4"),
         (vec![p("in.csv"), p("x.raw"), "--size=0x3".into()], "size"),
         (vec![p("missing.csv"), p("x.csv")], "missing.csv"),

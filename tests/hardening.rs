@@ -455,7 +455,7 @@ fn a_truncated_input_leaves_a_partial_output_that_says_so() {
     );
     assert_eq!(code, Some(0), "{info}");
 
-    // The same for transcode: a RAW file cut inside a word.
+    // The same for transcode: an event file corrupt halfway through.
     let (code, err) = run(
         &[
             "convert",
@@ -463,26 +463,72 @@ fn a_truncated_input_leaves_a_partial_output_that_says_so() {
             "--max-frames",
             "30",
             "-o",
-            "whole.raw",
+            "whole.csv",
         ],
         &dir,
         Duration::from_secs(60),
     );
     assert_eq!(code, Some(0), "{err}");
-    let raw = std::fs::read(dir.join("whole.raw")).unwrap();
-    std::fs::write(dir.join("cut.raw"), &raw[..raw.len() - 3]).unwrap();
+    let whole = std::fs::read_to_string(dir.join("whole.csv")).unwrap();
+    let lines: Vec<&str> = whole.lines().collect();
+    assert!(lines.len() > 100, "{} lines", lines.len());
+    let mut bad = lines[..lines.len() / 2].join("\n");
+    bad.push_str("\n12,x,3,1\n");
+    bad.push_str(&lines[lines.len() / 2..].join("\n"));
+    std::fs::write(dir.join("bad.csv"), bad).unwrap();
     let (code, err) = run(
-        &["transcode", "cut.raw", "out.csv"],
+        // (a size given, so no pass over the input to find its extent fails first)
+        &["transcode", "bad.csv", "out.raw", "--size", "64x48"],
         &dir,
         Duration::from_secs(20),
     );
     assert_eq!(code, Some(1), "{err}");
     assert!(
-        err.contains("cut.raw") && err.contains("out.partial.csv"),
+        err.contains("bad.csv") && err.contains("out.partial.raw"),
         "{err}"
     );
-    assert!(!dir.join("out.csv").exists());
-    assert!(!dir.join("whole.partial.raw").exists());
+    assert!(!dir.join("out.raw").exists());
+    assert!(!dir.join("whole.partial.csv").exists());
+}
+
+/// An event file whose writer was killed mid-write (SIGKILL, a power cut) ends inside its last
+/// word or line: `transcode` keeps every whole event before the cut and warns, exit status 0.
+#[test]
+fn an_event_file_cut_mid_write_reads_up_to_the_cut() {
+    let dir = common::temp_dir("hardening-cut");
+    let mut csv = String::from("t_us,x,y,on\n");
+    for i in 0..500u32 {
+        csv.push_str(&format!("{},{},{},{}\n", 10 * i, i % 64, i % 48, i % 2));
+    }
+    std::fs::write(dir.join("whole.csv"), &csv).unwrap();
+    for out in ["whole.raw", "whole3.raw"] {
+        let evt = if out == "whole.raw" { "2" } else { "3" };
+        let (code, err) = run(
+            &["transcode", "whole.csv", out, "--evt", evt],
+            &dir,
+            Duration::from_secs(20),
+        );
+        assert_eq!(code, Some(0), "{err}");
+    }
+    let whole: Vec<String> = csv.lines().map(str::to_owned).collect();
+    // (file, bytes cut off its end, events lost)
+    let cases = [
+        ("whole.raw", 3usize, 1usize),
+        ("whole3.raw", 1, 1),
+        ("whole.csv", 4, 1),
+    ];
+    for (file, cut, lost) in cases {
+        let bytes = std::fs::read(dir.join(file)).unwrap();
+        let name = format!("cut-{file}");
+        std::fs::write(dir.join(&name), &bytes[..bytes.len() - cut]).unwrap();
+        let back = format!("{name}.csv");
+        let (code, err) = run(&["transcode", &name, &back], &dir, Duration::from_secs(20));
+        assert_eq!(code, Some(0), "{file}: {err}");
+        assert!(err.contains("truncated input"), "{file}: {err}");
+        let got = std::fs::read_to_string(dir.join(&back)).unwrap();
+        let got: Vec<&str> = got.lines().collect();
+        assert_eq!(got, whole[..whole.len() - lost], "{file}");
+    }
 }
 
 /// Times at both ends of the i64 range go through both RAW encodings and come back exactly

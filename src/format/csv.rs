@@ -96,18 +96,30 @@ impl<R: BufRead> EventDecoder for Decoder<R> {
             if n as u64 == MAX_LINE && self.buf.last() != Some(&b'\n') {
                 return Err(bad(self.line, format!("longer than {MAX_LINE} bytes")));
             }
-            let text = std::str::from_utf8(&self.buf)
-                .map_err(|_| bad(self.line, "not UTF-8".into()))?
-                .trim();
-            if text.is_empty() || (self.line == 1 && text == HEADER) {
-                continue;
+            // Only the input's last line can lack its newline.
+            let last = self.buf.last() != Some(&b'\n');
+            let text = std::str::from_utf8(&self.buf).map(str::trim);
+            let event = match text {
+                Ok(t) if t.is_empty() || (self.line == 1 && t == HEADER) => continue,
+                Ok(t) => parse_line(t).ok_or_else(|| {
+                    bad(
+                        self.line,
+                        format!("expected '{HEADER}' fields, got '{}'", t.escape_debug()),
+                    )
+                }),
+                Err(_) => Err(bad(self.line, "not UTF-8".into())),
+            };
+            match event {
+                Ok(e) => out.push(e),
+                // A writer killed mid-write (SIGKILL, a power cut) leaves part of a line.
+                Err(e) if last => {
+                    tracing::warn!(
+                        "{e}; the input ends inside this line (a truncated input), which is dropped"
+                    );
+                    break;
+                }
+                Err(e) => return Err(e),
             }
-            out.push(parse_line(text).ok_or_else(|| {
-                bad(
-                    self.line,
-                    format!("expected '{HEADER}' fields, got '{}'", text.escape_debug()),
-                )
-            })?);
         }
         Ok(out.len() - start)
     }
@@ -163,6 +175,16 @@ mod tests {
         assert_eq!(back.events.events(), &events[..]);
         assert_eq!((back.width, back.height), (65535, 65535));
         std::fs::write(&p, "t_us,x,y,on\n1,2,3,1\n4,5,x,0\n").unwrap();
+        let err = super::super::read_events(&p).unwrap_err().to_string();
+        assert!(err.contains("line 3"), "{err}");
+        // A last line cut short is dropped (with a warning); one that is whole is kept.
+        std::fs::write(&p, "t_us,x,y,on\n1,2,3,1\n4,5,6,0\n2156").unwrap();
+        let back = super::super::read_events(&p).unwrap();
+        assert_eq!(back.events.len(), 2);
+        std::fs::write(&p, "t_us,x,y,on\n1,2,3,1\n4,5,6,0").unwrap();
+        let back = super::super::read_events(&p).unwrap();
+        assert_eq!(back.events.len(), 2);
+        std::fs::write(&p, "t_us,x,y,on\n1,2,3,1\n4,5,x,0\n7,8,9,1").unwrap();
         let err = super::super::read_events(&p).unwrap_err().to_string();
         assert!(err.contains("line 3"), "{err}");
         std::fs::write(&p, vec![b'1'; 10_000]).unwrap();

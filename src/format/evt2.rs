@@ -256,10 +256,18 @@ mod tests {
         assert!(enc.write(&[Event::new(9, 0, 0, true)]).is_err());
         assert!(enc.write(&[Event::new(11, 640, 0, true)]).is_err());
         assert!(Encoder::new(Vec::new(), 4096, 10).is_err());
-        // A truncated word.
-        let h = raw::Header::default();
-        let mut dec = Decoder::new(&[0u8, 0, 0, 0x80, 1, 2][..], &h);
-        assert!(dec.read_events(&mut Vec::new(), 10).is_err());
+        // A stream cut inside its last word keeps the events before it.
+        let events = [Event::new(10, 1, 2, true), Event::new(20, 3, 4, false)];
+        let mut enc = Encoder::new(Vec::new(), 640, 480).unwrap();
+        enc.write(&events).unwrap();
+        let bytes = enc.into_inner().unwrap();
+        for cut in 1..4 {
+            let mut r = std::io::BufReader::new(&bytes[..bytes.len() - cut]);
+            let h = raw::read_header(&mut r).unwrap();
+            let (mut dec, mut out) = (Decoder::new(r, &h), Vec::new());
+            while dec.read_events(&mut out, 10).unwrap() > 0 {}
+            assert_eq!(out, events[..1], "cut {cut} bytes");
+        }
         // An old-style header without `% end`, no geometry.
         let bytes = b"% evt 2.0\n% serial 1\n\x00\x00\x00\x80";
         let mut r = std::io::BufReader::new(&bytes[..]);

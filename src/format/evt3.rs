@@ -467,8 +467,14 @@ mod tests {
         assert!(enc.write(&[Event::new(9, 0, 0, true)]).is_err());
         assert!(enc.write(&[Event::new(11, 0, 64, true)]).is_err());
         assert!(Encoder::new(Vec::new(), 0, 10).is_err());
-        let h = raw::Header::default();
-        let mut dec = Decoder::new(&[0u8, 0x80, 1][..], &h);
-        assert!(dec.read_events(&mut Vec::new(), 10).is_err());
+    }
+
+    #[test]
+    fn a_stream_cut_inside_a_word_keeps_the_events_before_it() {
+        let events = [Event::new(10, 1, 2, true), Event::new(20, 3, 4, false)];
+        let bytes = encode(&events, 64, 64);
+        assert_eq!(decode(&bytes), events);
+        // The last word (the second event's column) loses one of its two bytes.
+        assert_eq!(decode(&bytes[..bytes.len() - 1]), events[..1]);
     }
 }

@@ -80,7 +80,8 @@ pub fn check_event(e: &Event, last_t: i64, width: u16, height: u16) -> Result<()
 }
 
 /// Reads whole `word`-byte words into `buf`; returns the bytes read (less than `buf.len()` only
-/// at the end of the input). Ending inside a word is an error naming the word.
+/// at the end of the input). An input that ends inside a word (a writer killed mid-write, a
+/// power cut) loses that word, with a warning naming it.
 pub(crate) fn read_words(
     r: &mut impl Read,
     buf: &mut [u8],
@@ -97,16 +98,14 @@ pub(crate) fn read_words(
             Err(e) => return Err(Error::invalid(what, e.to_string())),
         }
     }
-    if n % word != 0 {
-        return Err(Error::invalid(
-            what,
-            format!(
-                "ends inside word {} (a truncated input)",
-                first_word + (n / word) as u64
-            ),
-        ));
+    let partial = n % word;
+    if partial != 0 {
+        tracing::warn!(
+            "{what}: the input ends {partial} byte(s) into word {} (a truncated input), which is dropped",
+            first_word + (n / word) as u64
+        );
     }
-    Ok(n)
+    Ok(n - partial)
 }
 
 /// The event file formats, picked by extension (`.raw` needs the EVT version).

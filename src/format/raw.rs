@@ -117,6 +117,10 @@ pub fn read_header(r: &mut impl BufRead) -> Result<Header> {
     Ok(header)
 }
 
+fn unsupported(what: &str) -> String {
+    format!("the event format '{what}' is not supported (EVT 2.0 and EVT 3.0 are)")
+}
+
 fn parse_line(
     line: &str,
     header: &mut Header,
@@ -129,7 +133,8 @@ fn parse_line(
             header.evt = match value {
                 "2.0" => Some(Evt::Evt2),
                 "3.0" => Some(Evt::Evt3),
-                _ => header.evt,
+                // Read as EVT 2.0, another layout (EVT 2.1, EVT 4.0) is garbage: refuse it.
+                v => return Err(unsupported(&format!("evt {v}"))),
             }
         }
         "geometry" => {
@@ -142,6 +147,7 @@ fn parse_line(
             match parts.next() {
                 Some("EVT2") => header.evt = Some(Evt::Evt2),
                 Some("EVT3") => header.evt = Some(Evt::Evt3),
+                Some(tag) if tag.starts_with("EVT") => return Err(unsupported(tag)),
                 _ => {}
             }
             let (mut w, mut h) = (None, None);
@@ -339,6 +345,15 @@ mod tests {
         assert!(r(b"% geometry 0x480\n").is_err());
         assert!(r(b"% format EVT3;height=99999;width=1\n").is_err());
         assert!(r(b"% v2ce_time_offset_us abc\n").is_err());
+        // Another word layout is refused, not read as EVT 2.0.
+        for h in [
+            &b"% evt 2.1\n"[..],
+            b"% evt 4.0\n",
+            b"% format EVT21;height=2;width=2\n",
+        ] {
+            let err = r(h).unwrap_err().to_string();
+            assert!(err.contains("not supported"), "{err}");
+        }
         let long = vec![b'%'; MAX_HEADER_BYTES as usize + 10];
         assert!(r(&long).is_err());
     }
