@@ -10,7 +10,7 @@ use crate::error::{Error, Result};
 use crate::event::{time_slice, Event};
 use crate::format::{self, Recording};
 use crate::interval::{fixed_intervals, intervals_from_frames, Interval};
-use crate::metrics::{Stage1Metrics, Stage2Metrics, Stage2Scorer};
+use crate::metrics::{IntervalScore, IntervalScratch, Stage1Metrics, Stage2Metrics, Stage2Scorer};
 use crate::stage1::Stage1Config;
 use crate::stage2::{SampleStats, Sampler};
 use crate::voxel::{VoxelGrid, Voxelizer, DEFAULT_BINS};
@@ -34,36 +34,139 @@ pub struct Stage2Report {
     pub sample_us_median: f64,
 }
 
+/// Intervals each worker of [`stage2`] takes per round: enough to keep the threads busy, few
+/// enough that a round's sampled events stay small.
+const INTERVALS_PER_WORKER: usize = 8;
+
+/// One thread's working state in [`stage2`].
+struct Stage2Worker {
+    voxelizer: Voxelizer,
+    grid: VoxelGrid,
+    scratch: IntervalScratch,
+}
+
+/// What [`stage2`] learned from one interval.
+struct Stage2Interval {
+    score: IntervalScore,
+    repaired: SampleStats,
+    events: Vec<Event>,
+    voxelize_us: f64,
+    sample_us: f64,
+}
+
+impl Stage2Worker {
+    fn run(
+        &mut self,
+        recording: &Recording,
+        interval: Interval,
+        sampler: &dyn Sampler,
+    ) -> Result<Stage2Interval> {
+        let truth = recording
+            .events
+            .time_slice(interval.start(), interval.end());
+        let t0 = Instant::now();
+        self.voxelizer
+            .voxelize_into(truth, interval, &mut self.grid)?;
+        let t1 = Instant::now();
+        let mut events = Vec::new();
+        let repaired = sampler.sample(&self.grid, interval, &mut events);
+        let t2 = Instant::now();
+        Ok(Stage2Interval {
+            score: self.scratch.score(interval, truth, &events),
+            repaired,
+            events,
+            voxelize_us: (t1 - t0).as_secs_f64() * 1e6,
+            sample_us: (t2 - t1).as_secs_f64() * 1e6,
+        })
+    }
+}
+
 /// Voxelizes the events of each interval with `bins` nodes, re-samples them with `sampler`,
 /// scores the result against the original events, and hands each interval's sampled events
-/// (sorted) to `on_events`.
+/// (sorted) to `on_events`, in interval order.
+///
+/// Intervals are independent, so they run on every core the machine has, in rounds of a few
+/// per thread; their scores are added in interval order, so the report is the same on any
+/// number of threads.
 pub fn stage2(
+    recording: &Recording,
+    intervals: &[Interval],
+    bins: usize,
+    sampler: &dyn Sampler,
+    on_events: impl FnMut(&[Event]) -> Result<()>,
+) -> Result<Stage2Report> {
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    stage2_on(threads, recording, intervals, bins, sampler, on_events)
+}
+
+/// [`stage2`] on `threads` threads.
+fn stage2_on(
+    threads: usize,
     recording: &Recording,
     intervals: &[Interval],
     bins: usize,
     sampler: &dyn Sampler,
     mut on_events: impl FnMut(&[Event]) -> Result<()>,
 ) -> Result<Stage2Report> {
-    let mut voxelizer = Voxelizer::new(recording.width, recording.height, bins)?;
-    let mut grid = VoxelGrid::new(recording.width, recording.height, bins)?;
+    let threads = threads.clamp(1, intervals.len().max(1));
+    let mut workers = (0..threads)
+        .map(|_| {
+            Ok(Stage2Worker {
+                voxelizer: Voxelizer::new(recording.width, recording.height, bins)?,
+                grid: VoxelGrid::new(recording.width, recording.height, bins)?,
+                scratch: IntervalScratch::default(),
+            })
+        })
+        .collect::<Result<Vec<_>>>()?;
     let mut scorer = Stage2Scorer::new();
     let mut repaired = SampleStats::default();
-    let mut out = Vec::new();
     let (mut vox_us, mut smp_us) = (Vec::new(), Vec::new());
-    for &interval in intervals {
-        let truth = recording
-            .events
-            .time_slice(interval.start(), interval.end());
-        let t0 = Instant::now();
-        voxelizer.voxelize_into(truth, interval, &mut grid)?;
-        let t1 = Instant::now();
-        out.clear();
-        repaired.add(sampler.sample(&grid, interval, &mut out));
-        let t2 = Instant::now();
-        vox_us.push((t1 - t0).as_secs_f64() * 1e6);
-        smp_us.push((t2 - t1).as_secs_f64() * 1e6);
-        scorer.add_interval(interval, truth, &out);
-        on_events(&out)?;
+    for round in intervals.chunks(threads * INTERVALS_PER_WORKER) {
+        let done: Vec<Result<Stage2Interval>> = if threads == 1 {
+            round
+                .iter()
+                .map(|&iv| workers[0].run(recording, iv, sampler))
+                .collect()
+        } else {
+            let next = std::sync::atomic::AtomicUsize::new(0);
+            let mut slots: Vec<Option<Result<Stage2Interval>>> =
+                std::iter::repeat_with(|| None).take(round.len()).collect();
+            let parts = std::thread::scope(|scope| {
+                let handles: Vec<_> = workers
+                    .iter_mut()
+                    .map(|worker| {
+                        let next = &next;
+                        scope.spawn(move || {
+                            let mut mine = Vec::new();
+                            loop {
+                                let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                                let Some(&iv) = round.get(i) else { break };
+                                mine.push((i, worker.run(recording, iv, sampler)));
+                            }
+                            mine
+                        })
+                    })
+                    .collect();
+                handles.into_iter().map(|h| h.join()).collect::<Vec<_>>()
+            });
+            for part in parts {
+                let part = part.map_err(|_| {
+                    Error::invalid("eval stage2", "a worker thread panicked".to_string())
+                })?;
+                for (i, r) in part {
+                    slots[i] = Some(r);
+                }
+            }
+            slots.into_iter().flatten().collect()
+        };
+        for d in done {
+            let d = d?;
+            scorer.add(d.score);
+            repaired.add(d.repaired);
+            vox_us.push(d.voxelize_us);
+            smp_us.push(d.sample_us);
+            on_events(&d.events)?;
+        }
     }
     Ok(Stage2Report {
         sampler: sampler.name().to_string(),
@@ -237,4 +340,43 @@ pub fn simulate_physics(
     ));
     let events = crate::calibrate::simulate(&frames, size, &stage1.physics_config(), seed)?;
     Ok(Recording::new(events, Some(size)))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::stage2::SamplerKind;
+
+    /// The report and the events handed out are the same on one thread and on several, where
+    /// rounds end mid-recording and threads finish out of order.
+    #[test]
+    fn stage2_gives_the_same_on_any_number_of_threads() {
+        let (recording, intervals) = sweeping_bar(30.0).unwrap();
+        for kind in [SamplerKind::Spatial, SamplerKind::Ldati] {
+            let sampler = kind.build(7);
+            let run = |threads| {
+                let mut events = Vec::new();
+                let report =
+                    stage2_on(threads, &recording, &intervals, 10, sampler.as_ref(), |e| {
+                        events.push(e.to_vec());
+                        Ok(())
+                    })
+                    .unwrap();
+                (
+                    serde_json::to_value(report.metrics).unwrap(),
+                    report.repaired,
+                    events,
+                )
+            };
+            let one = run(1);
+            assert_eq!(one.2.len(), intervals.len());
+            assert!(one.2.iter().map(Vec::len).sum::<usize>() > 1000);
+            for threads in [2, 3, 5] {
+                let many = run(threads);
+                assert_eq!(many.0, one.0, "{} on {threads} threads", kind.name());
+                assert_eq!(many.1, one.1);
+                assert!(many.2 == one.2, "{} on {threads} threads", kind.name());
+            }
+        }
+    }
 }

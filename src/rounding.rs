@@ -35,6 +35,15 @@ pub fn ceil_to_u32(v: f64) -> u32 {
     n.saturating_add(u32::from(v > f64::from(n)))
 }
 
+/// `v.ceil() as u64`: negatives and NaN to 0, saturating. (Its floor needs no helper:
+/// `v.floor() as u64` is `v as u64` for every `v`, truncation being the floor of a non-negative
+/// value and both casts saturating.)
+#[inline]
+pub fn ceil_to_u64(v: f64) -> u64 {
+    let n = v as u64;
+    n.saturating_add(u64::from(v > n as f64))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -94,6 +103,18 @@ mod tests {
                 "{v:e} ({:#x})",
                 v.to_bits()
             );
+        }
+    }
+
+    #[test]
+    fn ceil_to_u64_is_ceil_and_truncation_is_floor() {
+        let mut cases = cases_f64(70_000.0);
+        cases.extend([1.8e19, 1.9e19, u64::MAX as f64, (1u64 << 53) as f64 + 2.0]);
+        for v in cases {
+            let b = v.to_bits();
+            assert_eq!(ceil_to_u64(v), v.ceil() as u64, "{v:e} ({b:#x})");
+            assert_eq!(v as u64, v.floor() as u64, "{v:e} ({b:#x})");
+            assert_eq!(v as usize, v.floor() as usize, "{v:e} ({b:#x})");
         }
     }
 

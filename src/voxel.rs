@@ -266,7 +266,8 @@ impl Voxelizer {
                 s => s,
             } as usize;
             let tau = ((e.t - interval.start()) as f64 * scale).clamp(0.0, last);
-            let a = (tau.floor() as usize).min(self.bins - 2);
+            // The floor: truncation of a non-negative value (rounding.rs).
+            let a = (tau as usize).min(self.bins - 2);
             let frac = tau - a as f64;
             let v = &mut grid.values[slot * self.bins + a..slot * self.bins + a + 2];
             v[0] += 1.0 - frac;

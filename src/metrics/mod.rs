@@ -4,4 +4,4 @@ pub mod stage1;
 pub mod stage2;
 
 pub use stage1::Stage1Metrics;
-pub use stage2::{Stage2Metrics, Stage2Scorer};
+pub use stage2::{IntervalScore, IntervalScratch, Stage2Metrics, Stage2Scorer};

@@ -52,7 +52,7 @@ pub struct Stage2Scorer {
     scored: u64,
     events_in: u64,
     events_out: u64,
-    keys: Vec<(u64, i64)>,
+    scratch: IntervalScratch,
 }
 
 fn key(e: &Event) -> u64 {
@@ -68,6 +68,82 @@ pub struct IntervalScore {
     pub noe: u64,
     /// `|pred| / |gt|` (`None` without ground truth).
     pub pger: Option<f64>,
+    /// Ground-truth events.
+    pub events_in: u64,
+    /// Predicted events.
+    pub events_out: u64,
+}
+
+/// Reusable working memory of [`IntervalScratch::score`]: one per thread.
+#[derive(Debug, Clone, Default)]
+pub struct IntervalScratch {
+    truth: Vec<(u64, i64)>,
+    predicted: Vec<(u64, i64)>,
+}
+
+impl IntervalScratch {
+    /// Scores one interval: `truth` and `predicted` are the events inside `interval`, in any
+    /// order. Both are sorted by pixel, polarity and time, then walked together: each
+    /// ground-truth event's nearest prediction is the first at or after it or the one before.
+    pub fn score(
+        &mut self,
+        interval: Interval,
+        truth: &[Event],
+        predicted: &[Event],
+    ) -> IntervalScore {
+        let (events_in, events_out) = (truth.len() as u64, predicted.len() as u64);
+        if truth.is_empty() {
+            return IntervalScore {
+                mete_us: None,
+                noe: 0,
+                pger: None,
+                events_in,
+                events_out,
+            };
+        }
+        let cap = 3.0 * interval.duration_us() as f64 / 10.0;
+        let keyed = |events: &[Event], into: &mut Vec<(u64, i64)>| {
+            into.clear();
+            into.extend(events.iter().map(|e| (key(e), e.t)));
+            into.sort_unstable();
+        };
+        keyed(truth, &mut self.truth);
+        keyed(predicted, &mut self.predicted);
+        let pred = &self.predicted;
+        // Errors within the cap are whole microseconds: summed exactly, whatever the order.
+        let mut within = 0u128;
+        let mut overflows = 0u64;
+        let mut p = 0;
+        for &(k, t) in &self.truth {
+            while p < pred.len() && pred[p] < (k, t) {
+                p += 1;
+            }
+            let after = pred.get(p).filter(|q| q.0 == k).map(|q| q.1.abs_diff(t));
+            let before = p
+                .checked_sub(1)
+                .map(|i| pred[i])
+                .filter(|q| q.0 == k)
+                .map(|q| q.1.abs_diff(t));
+            let d = match (after, before) {
+                (Some(a), Some(b)) => a.min(b) as f64,
+                (Some(d), None) | (None, Some(d)) => d as f64,
+                (None, None) => NO_MATCH_US,
+            };
+            if d > cap {
+                overflows += 1;
+            } else {
+                within += d as u128;
+            }
+        }
+        let total = within as f64 + overflows as f64 * cap;
+        IntervalScore {
+            mete_us: Some(total / truth.len() as f64),
+            noe: overflows,
+            pger: Some(predicted.len() as f64 / truth.len() as f64),
+            events_in,
+            events_out,
+        }
+    }
 }
 
 impl Stage2Scorer {
@@ -76,59 +152,30 @@ impl Stage2Scorer {
         Self::default()
     }
 
-    /// Scores one interval: `truth` and `predicted` are the events inside `interval`, in any order.
+    /// Scores one interval and adds it: `truth` and `predicted` are the events inside
+    /// `interval`, in any order.
     pub fn add_interval(
         &mut self,
         interval: Interval,
         truth: &[Event],
         predicted: &[Event],
     ) -> IntervalScore {
+        let score = self.scratch.score(interval, truth, predicted);
+        self.add(score);
+        score
+    }
+
+    /// Adds the score of one interval, computed apart (on another thread). Scores added in the
+    /// same order give the same aggregate.
+    pub fn add(&mut self, score: IntervalScore) {
         self.intervals += 1;
-        self.events_in += truth.len() as u64;
-        self.events_out += predicted.len() as u64;
-        if truth.is_empty() {
-            return IntervalScore {
-                mete_us: None,
-                noe: 0,
-                pger: None,
-            };
-        }
-        let cap = 3.0 * interval.duration_us() as f64 / 10.0;
-        self.keys.clear();
-        self.keys.extend(predicted.iter().map(|e| (key(e), e.t)));
-        self.keys.sort_unstable();
-        let mut total = 0.0;
-        let mut overflows = 0u64;
-        for g in truth {
-            let k = key(g);
-            let lo = self.keys.partition_point(|&(kk, _)| kk < k);
-            let hi = self.keys.partition_point(|&(kk, _)| kk <= k);
-            let times = &self.keys[lo..hi];
-            let d = if times.is_empty() {
-                NO_MATCH_US
-            } else {
-                let p = times.partition_point(|&(_, t)| t < g.t);
-                let after = times.get(p).map(|&(_, t)| t - g.t);
-                let before = p.checked_sub(1).map(|q| g.t - times[q].1);
-                after.into_iter().chain(before).min().unwrap_or(0) as f64
-            };
-            if d > cap {
-                overflows += 1;
-                total += cap;
-            } else {
-                total += d;
-            }
-        }
-        let mete = total / truth.len() as f64;
-        let pger = predicted.len() as f64 / truth.len() as f64;
-        self.scored += 1;
-        self.sum_mete += mete;
-        self.sum_noe += overflows as f64;
-        self.sum_pger += pger;
-        IntervalScore {
-            mete_us: Some(mete),
-            noe: overflows,
-            pger: Some(pger),
+        self.events_in += score.events_in;
+        self.events_out += score.events_out;
+        if let (Some(mete), Some(pger)) = (score.mete_us, score.pger) {
+            self.scored += 1;
+            self.sum_mete += mete;
+            self.sum_noe += score.noe as f64;
+            self.sum_pger += pger;
         }
     }
 

@@ -22,7 +22,7 @@ pub fn tolerance(mass: f64) -> f64 {
 
 /// `ceil(mass - tolerance)`, at least 0.
 pub fn ceil_count(mass: f64) -> u64 {
-    (mass - tolerance(mass)).ceil().max(0.0) as u64
+    crate::rounding::ceil_to_u64(mass - tolerance(mass))
 }
 
 /// The total number of events of a cell whose cumulative masses end with

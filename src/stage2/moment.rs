@@ -118,7 +118,8 @@ pub(super) fn cumulative_counts(nodes: &[f64], scratch: &mut Scratch) {
         let hi = if i + 1 == k {
             total
         } else {
-            let h = (cum[i + 1] + tolerance(cum[i + 1])).floor().max(0.0) as u64;
+            // The floor, at least 0: truncation (rounding.rs).
+            let h = (cum[i + 1] + tolerance(cum[i + 1])) as u64;
             h.clamp(lo, total)
         };
         ambiguous |= hi > lo;
@@ -284,7 +285,7 @@ fn ln_irwin_hall(m: u64, s: f64) -> f64 {
     let s = s.min(mf - s); // symmetric
     let mut sum = 0.0;
     let mut binom = 1.0;
-    for j in 0..=(s.floor() as u64) {
+    for j in 0..=(s as u64) {
         let term = binom * (s - j as f64).powi(m as i32 - 1);
         sum += if j % 2 == 0 { term } else { -term };
         binom = binom * (mf - j as f64) / (j as f64 + 1.0);
@@ -312,7 +313,7 @@ mod tests {
     fn voxel(taus: &[f64]) -> Vec<f64> {
         let mut v = vec![0.0; 10];
         for &t in taus {
-            let a = (t.floor() as usize).min(8);
+            let a = (t as usize).min(8); // the floor (rounding.rs)
             v[a] += 1.0 - (t - a as f64);
             v[a + 1] += t - a as f64;
         }
