@@ -4,6 +4,7 @@
 //! recording's own frames ([`simulate_physics`]), the built-in recording ([`sweeping_bar`]).
 
 use std::path::Path;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
 use crate::error::{Error, Result};
@@ -81,6 +82,51 @@ impl Stage2Worker {
     }
 }
 
+/// Runs the intervals of `round` on the `workers`, one thread each (none with one worker);
+/// returns what each gave, in the round's order.
+fn run_round(
+    workers: &mut [Stage2Worker],
+    round: &[Interval],
+    recording: &Recording,
+    sampler: &dyn Sampler,
+) -> Result<Vec<Result<Stage2Interval>>> {
+    if let [worker] = workers {
+        return Ok(round
+            .iter()
+            .map(|&iv| worker.run(recording, iv, sampler))
+            .collect());
+    }
+    let next = AtomicUsize::new(0);
+    let parts = std::thread::scope(|scope| {
+        let handles: Vec<_> = workers
+            .iter_mut()
+            .map(|worker| {
+                let next = &next;
+                scope.spawn(move || {
+                    let mut mine = Vec::new();
+                    loop {
+                        let i = next.fetch_add(1, Ordering::Relaxed);
+                        let Some(&iv) = round.get(i) else { break };
+                        mine.push((i, worker.run(recording, iv, sampler)));
+                    }
+                    mine
+                })
+            })
+            .collect();
+        handles.into_iter().map(|h| h.join()).collect::<Vec<_>>()
+    });
+    let mut slots: Vec<Option<Result<Stage2Interval>>> =
+        std::iter::repeat_with(|| None).take(round.len()).collect();
+    for part in parts {
+        let part = part
+            .map_err(|_| Error::invalid("eval stage2", "a worker thread panicked".to_string()))?;
+        for (i, r) in part {
+            slots[i] = Some(r);
+        }
+    }
+    Ok(slots.into_iter().flatten().collect())
+}
+
 /// Voxelizes the events of each interval with `bins` nodes, re-samples them with `sampler`,
 /// scores the result against the original events, and hands each interval's sampled events
 /// (sorted) to `on_events`, in interval order.
@@ -95,7 +141,14 @@ pub fn stage2(
     sampler: &dyn Sampler,
     on_events: impl FnMut(&[Event]) -> Result<()>,
 ) -> Result<Stage2Report> {
-    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    // Each thread holds a voxelizer (512 MiB at 8192 x 8192): more threads only while theirs
+    // take at most a quarter of the memory left.
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let each = Voxelizer::fixed_bytes(recording.width, recording.height).max(1);
+    let by_memory = crate::limits::memory_available().map_or(cores, |free| {
+        usize::try_from(free / 4 / each).unwrap_or(usize::MAX)
+    });
+    let threads = cores.min(by_memory).max(1);
     stage2_on(threads, recording, intervals, bins, sampler, on_events)
 }
 
@@ -122,44 +175,7 @@ fn stage2_on(
     let mut repaired = SampleStats::default();
     let (mut vox_us, mut smp_us) = (Vec::new(), Vec::new());
     for round in intervals.chunks(threads * INTERVALS_PER_WORKER) {
-        let done: Vec<Result<Stage2Interval>> = if threads == 1 {
-            round
-                .iter()
-                .map(|&iv| workers[0].run(recording, iv, sampler))
-                .collect()
-        } else {
-            let next = std::sync::atomic::AtomicUsize::new(0);
-            let mut slots: Vec<Option<Result<Stage2Interval>>> =
-                std::iter::repeat_with(|| None).take(round.len()).collect();
-            let parts = std::thread::scope(|scope| {
-                let handles: Vec<_> = workers
-                    .iter_mut()
-                    .map(|worker| {
-                        let next = &next;
-                        scope.spawn(move || {
-                            let mut mine = Vec::new();
-                            loop {
-                                let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                                let Some(&iv) = round.get(i) else { break };
-                                mine.push((i, worker.run(recording, iv, sampler)));
-                            }
-                            mine
-                        })
-                    })
-                    .collect();
-                handles.into_iter().map(|h| h.join()).collect::<Vec<_>>()
-            });
-            for part in parts {
-                let part = part.map_err(|_| {
-                    Error::invalid("eval stage2", "a worker thread panicked".to_string())
-                })?;
-                for (i, r) in part {
-                    slots[i] = Some(r);
-                }
-            }
-            slots.into_iter().flatten().collect()
-        };
-        for d in done {
+        for d in run_round(&mut workers, round, recording, sampler)? {
             let d = d?;
             scorer.add(d.score);
             repaired.add(d.repaired);

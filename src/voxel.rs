@@ -224,6 +224,12 @@ impl Voxelizer {
         })
     }
 
+    /// The bytes a voxelizer for a `width x height` sensor holds whatever it voxelizes: a slot
+    /// per cell (pixel and polarity).
+    pub fn fixed_bytes(width: u16, height: u16) -> u64 {
+        2 * u64::from(width) * u64::from(height) * std::mem::size_of::<u32>() as u64
+    }
+
     /// Voxelizes `events` over `interval` into `grid` (cleared first).
     ///
     /// Each event at normalised time `tau = (t - start) * (C - 1) / (end - start)` adds
@@ -303,6 +309,14 @@ pub fn voxelize(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn fixed_bytes_are_what_a_voxelizer_holds() {
+        let v = Voxelizer::new(346, 260, 10).unwrap();
+        let held = std::mem::size_of_val(v.slot.as_slice()) as u64;
+        assert_eq!(Voxelizer::fixed_bytes(346, 260), held);
+        assert_eq!(Voxelizer::fixed_bytes(8192, 8192), 512 << 20);
+    }
 
     /// V2CE_SPEC Appendix B.1, with the interval given by its ends (0 and 1800 us), which here
     /// coincide with the first and last event.
