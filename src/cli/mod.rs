@@ -207,6 +207,10 @@ pub struct MotionArgs {
     /// [config default: the preset's].
     #[arg(long, value_enum)]
     pub(crate) flow_preset: Option<crate::flow::FlowPreset>,
+    /// Physics tier, --motion flow: which optical flow, dis (the project's own) or opencv (a
+    /// build with the `opencv-flow` feature only, for comparison) [config default: dis].
+    #[arg(long, value_enum)]
+    pub(crate) flow_backend: Option<crate::flow::FlowBackend>,
 }
 
 impl MotionArgs {
@@ -217,6 +221,7 @@ impl MotionArgs {
             physics.max_step_px => self.max_step_px,
             physics.max_subframes => self.max_subframes,
             physics.flow_preset => self.flow_preset,
+            physics.flow_backend => self.flow_backend,
         );
     }
 }

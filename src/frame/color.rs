@@ -94,3 +94,36 @@ mod tests {
         assert_eq!(ycbcr_to_rgb(200, 128, 128, true), (200, 200, 200));
     }
 }
+
+/// 8-bit gamma-encoded (sRGB) gray of linear luminance (times `scale`, saturating) into `out`:
+/// the optical flow's input.
+pub fn luma_to_gray(luma: &[u16], scale: f32, out: &mut Vec<u8>) {
+    let table = encode_table();
+    out.clear();
+    if scale == 1.0 {
+        out.extend(luma.iter().map(|&v| table[v as usize]));
+    } else {
+        out.extend(
+            luma.iter()
+                .map(|&v| table[(v as f32 * scale + 0.5).min(65535.0) as usize]),
+        );
+    }
+}
+
+/// The sRGB transfer function for every 16-bit linear value, to 8 bits.
+fn encode_table() -> &'static [u8] {
+    static TABLE: std::sync::OnceLock<Vec<u8>> = std::sync::OnceLock::new();
+    TABLE.get_or_init(|| {
+        (0..=u16::MAX)
+            .map(|v| {
+                let c = v as f64 / 65535.0;
+                let e = if c <= 0.0031308 {
+                    12.92 * c
+                } else {
+                    1.055 * c.powf(1.0 / 2.4) - 0.055
+                };
+                (e * 255.0).round().clamp(0.0, 255.0) as u8
+            })
+            .collect()
+    })
+}

@@ -438,6 +438,7 @@ pub struct PhysicsOverrides {
     pub max_step_px: Option<f64>,
     pub max_subframes: Option<u32>,
     pub flow_preset: Option<crate::flow::FlowPreset>,
+    pub flow_backend: Option<crate::flow::FlowBackend>,
 }
 
 impl PhysicsOverrides {
@@ -468,7 +469,8 @@ impl PhysicsOverrides {
             motion,
             max_step_px,
             max_subframes,
-            flow_preset
+            flow_preset,
+            flow_backend
         );
         base
     }

@@ -8,10 +8,14 @@
 //!
 //! 1. **Is there motion?** Both frames go to 8-bit gamma-encoded gray (the flow's input); an
 //!    interval with fewer than `MIN_CHANGED` pixels changed by `CHANGE_LEVELS` levels or more
-//!    gets no sub-frames and no flow, so a still scene costs what it did.
-//! 2. **Flow**, forward and backward ([`crate::flow`], OpenCV's DIS). A pixel's flow is
-//!    trusted where the two agree (forward-backward consistency: the forward vector and the
-//!    backward vector where it lands cancel to within `0.5 px + 10%`).
+//!    gets no sub-frames and no flow, so a still scene costs what it did. A frame's gray image
+//!    and pyramid ([`crate::flow::Pyramid`]) are built once: the second frame's are kept and
+//!    are the next interval's first.
+//! 2. **Flow**, forward and backward ([`crate::flow`], the project's DIS by default), on two
+//!    threads from the same two pyramids, and only over the tiles where some pixel changed
+//!    (and their neighbours): zero elsewhere, so the flow's cost follows the moving area. A
+//!    pixel's flow is trusted where the two agree (forward-backward consistency: the forward
+//!    vector and the backward vector where it lands cancel to within `0.5 px + 10%`).
 //! 3. **Does the flow explain the change?** Warping the first frame along the backward flow
 //!    must cut the changed pixels' difference to the second frame to at most `EXPLAINED` of
 //!    what it was, and at least `MIN_TRUSTED` of their flow vectors must be trusted.
@@ -38,7 +42,8 @@ use std::time::Instant;
 use serde::{Deserialize, Serialize};
 
 use crate::error::Result;
-use crate::flow::{DenseFlow, FlowPreset};
+use crate::flow::{DenseFlow, FlowBackend, FlowPreset, Pyramid, Region};
+use crate::frame::color::luma_to_gray as gray;
 
 /// How the pixel model sees the light between two frames.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
@@ -81,13 +86,12 @@ const MAX_CALM_INTERVALS: u32 = 30 * 64;
 /// Intervals the smoothed time needs after a change of cap before it may lower the cap.
 const SETTLE_INTERVALS: u32 = 3;
 
-/// Memory the motion model takes per pixel beyond the pixel model's, with `max_subframes`:
-/// the sub-frames (2 bytes each), the gray frames (2), both flows (16) and their masks (2), the
-/// flow lengths (8), and OpenCV's pyramids and buffers (48 per direction, an estimate from
-/// DIS's per-level images at half resolution and below: the two directions run side by side,
-/// each with its own).
-pub fn bytes_per_pixel(max_subframes: u32) -> u64 {
-    2 * u64::from(max_subframes.max(1) - 1) + 2 + 16 + 2 + 8 + 2 * 48
+/// Memory the motion model takes per pixel beyond the pixel model's, with `max_subframes`
+/// and `backend`: the sub-frames (2 bytes each), the kept frame's luminance (2), both flows
+/// (16) and their masks (2), the flow lengths (8), and the flow's pyramids and buffers
+/// ([`crate::flow::bytes_per_pixel`]).
+pub fn bytes_per_pixel(max_subframes: u32, backend: FlowBackend) -> u64 {
+    2 * u64::from(max_subframes.max(1) - 1) + 2 + 16 + 2 + 8 + crate::flow::bytes_per_pixel(backend)
 }
 
 /// What the motion model did, for the physics tier's record.
@@ -102,6 +106,12 @@ pub struct MotionStats {
     pub fallbacks: u64,
     /// Time spent computing flow, us.
     pub flow_us: u64,
+    /// Pixels the flow was computed on (its region: the changed tiles and their neighbours),
+    /// over all intervals whose flow ran: with `flow_intervals` and the frame's size, the
+    /// share of the frame the flow cost.
+    pub flow_pixels: u64,
+    /// Pixels of a frame.
+    pub frame_pixels: u64,
     /// Times a live run lowered the sub-frame cap to keep up.
     pub cap_lowered: u64,
     /// The sub-frame cap now (intervals per frame interval; 1: linear).
@@ -109,12 +119,14 @@ pub struct MotionStats {
 }
 
 impl MotionStats {
-    /// Adds another run's counters (the cap is the later run's).
+    /// Adds another run's counters (the cap and the frame's size are the later run's).
     pub fn add(&mut self, o: MotionStats) {
         self.flow_intervals += o.flow_intervals;
         self.subframes += o.subframes;
         self.fallbacks += o.fallbacks;
         self.flow_us += o.flow_us;
+        self.flow_pixels += o.flow_pixels;
+        self.frame_pixels = o.frame_pixels;
         self.cap_lowered += o.cap_lowered;
         self.cap = o.cap;
     }
@@ -126,6 +138,17 @@ pub struct Subframes {
     /// The forward and backward flows' estimators, run side by side.
     flow: DenseFlow,
     back: DenseFlow,
+    /// The interval's two frames: gray images and pyramids.
+    p0: Pyramid,
+    p1: Pyramid,
+    /// The last interval's second frame (its luminance and pyramid), the next one's first
+    /// when the values match.
+    kept: Pyramid,
+    kept_luma: Vec<u16>,
+    kept_valid: bool,
+    /// Per tile: some pixel changed; and the region the flow is computed on.
+    changed_tiles: Vec<bool>,
+    region: Region,
     width: usize,
     height: usize,
     max_step_px: f64,
@@ -134,8 +157,6 @@ pub struct Subframes {
     /// A live run's cap keeper; `None` offline.
     live: Option<Governor>,
     warned_error: bool,
-    gray0: Vec<u8>,
-    gray1: Vec<u8>,
     f01: Vec<[f32; 2]>,
     f10: Vec<[f32; 2]>,
     ok0: Vec<bool>,
@@ -153,15 +174,22 @@ impl Subframes {
     /// Sub-frames for `width x height` frames: at most `max_subframes` intervals per frame
     /// interval, each moving no pixel more than `max_step_px`.
     pub fn new(
-        preset: FlowPreset,
+        (backend, preset): (FlowBackend, FlowPreset),
         max_step_px: f64,
         max_subframes: u32,
         width: u16,
         height: u16,
     ) -> Result<Self> {
         Ok(Subframes {
-            flow: DenseFlow::new(preset, width, height)?,
-            back: DenseFlow::new(preset, width, height)?,
+            flow: DenseFlow::new(backend, preset, width, height)?,
+            back: DenseFlow::new(backend, preset, width, height)?,
+            p0: Pyramid::new(),
+            p1: Pyramid::new(),
+            kept: Pyramid::new(),
+            kept_luma: Vec::new(),
+            kept_valid: false,
+            changed_tiles: Vec::new(),
+            region: Region::default(),
             width: width.into(),
             height: height.into(),
             max_step_px,
@@ -169,8 +197,6 @@ impl Subframes {
             cap: max_subframes,
             live: None,
             warned_error: false,
-            gray0: Vec::new(),
-            gray1: Vec::new(),
             f01: Vec::new(),
             f10: Vec::new(),
             ok0: Vec::new(),
@@ -180,6 +206,7 @@ impl Subframes {
             ready: false,
             stats: MotionStats {
                 cap: max_subframes,
+                frame_pixels: u64::from(width) * u64::from(height),
                 ..Default::default()
             },
         })
@@ -219,11 +246,21 @@ impl Subframes {
         self.stats.subframes += k as u64 - 1;
         self.frames.resize_with(k - 1, || (0, Vec::new()));
         let mut frames = std::mem::take(&mut self.frames);
-        for (j, (t, luma)) in frames.iter_mut().enumerate() {
+        for (j, (t, _)) in frames.iter_mut().enumerate() {
             let tau = (j + 1) as f64 / k as f64;
             *t = t0 + ((t1 - t0) as f64 * tau).round() as i64;
-            self.synthesize(f0, scale0, f1, tau as f32, tile, luma);
         }
+        // The sub-frames are independent: half of them on a second thread.
+        let (first, second) = frames.split_at_mut((k - 1) / 2);
+        let this = &*self;
+        let make = |part: &mut [(i64, Vec<u16>)], offset: usize| {
+            for (j, (_, luma)) in part.iter_mut().enumerate() {
+                let tau = (offset + j + 1) as f32 / k as f32;
+                this.synthesize(f0, scale0, f1, tau, tile, luma);
+            }
+        };
+        let split = first.len();
+        side_by_side(|| make(first, 0), || make(second, split));
         self.frames = frames;
         k
     }
@@ -283,48 +320,96 @@ impl Subframes {
         if scale0 == 1.0 && f0 == f1 {
             return 1;
         }
-        gray(f0, scale0, &mut self.gray0);
-        gray(f1, 1.0, &mut self.gray1);
-        let changed = self
-            .gray0
-            .iter()
-            .zip(&self.gray1)
-            .filter(|(&a, &b)| (a as i16 - b as i16).abs() >= CHANGE_LEVELS)
-            .count();
+        self.load(f0, scale0, f1);
+        let k = self.flow_intervals(span_us, tile);
+        // The second frame is the next interval's first.
+        std::mem::swap(&mut self.kept, &mut self.p1);
+        self.kept_luma.clear();
+        self.kept_luma.extend_from_slice(f1);
+        self.kept_valid = true;
+        k
+    }
+
+    /// The interval's gray frames and pyramids: the first one kept from the last interval
+    /// where it is that interval's second frame (the same values, no exposure scale).
+    fn load(&mut self, f0: &[u16], scale0: f32, f1: &[u16]) {
+        let (w, h) = (self.width, self.height);
+        if self.kept_valid && scale0 == 1.0 && self.kept_luma == f0 {
+            std::mem::swap(&mut self.p0, &mut self.kept);
+        } else {
+            self.p0.set(w, h, |g| gray(f0, scale0, g));
+        }
+        self.kept_valid = false;
+        self.p1.set(w, h, |g| gray(f1, 1.0, g));
+    }
+
+    /// The changed pixels and tiles of the loaded frames: how many pixels changed by
+    /// `CHANGE_LEVELS` or more, with `changed_tiles` set where some did.
+    fn changes(&mut self, tile: usize) -> usize {
+        let (w, h) = (self.width, self.height);
+        let tiles_x = w.div_ceil(tile);
+        self.changed_tiles.clear();
+        self.changed_tiles.resize(tiles_x * h.div_ceil(tile), false);
+        let (g0, g1) = (self.p0.gray(), self.p1.gray());
+        let mut changed = 0;
+        for (y, (r0, r1)) in g0.chunks_exact(w).zip(g1.chunks_exact(w)).enumerate() {
+            let tiles = &mut self.changed_tiles[(y / tile) * tiles_x..][..tiles_x];
+            for (t, (c0, c1)) in tiles.iter_mut().zip(r0.chunks(tile).zip(r1.chunks(tile))) {
+                let n = c0
+                    .iter()
+                    .zip(c1)
+                    .filter(|(&a, &b)| a.abs_diff(b) >= CHANGE_LEVELS as u8)
+                    .count();
+                changed += n;
+                *t |= n > 0;
+            }
+        }
+        changed
+    }
+
+    /// The flow of the loaded frames and the intervals it asks for.
+    fn flow_intervals(&mut self, span_us: i64, tile: usize) -> usize {
+        let (w, h) = (self.width, self.height);
+        let changed = self.changes(tile);
         if changed < MIN_CHANGED {
             return 1;
         }
         let started = Instant::now();
+        // The flow on the changed tiles and their neighbours (a flow that leaves a changed
+        // tile lands in one: what moved changed both where it was and where it went).
+        let tiles_x = w.div_ceil(tile);
+        self.region = Region::new(tile, tiles_x, &dilate(&self.changed_tiles, tiles_x));
+        self.stats.flow_pixels += (0..h)
+            .step_by(tile)
+            .flat_map(|y| self.region.row_spans(y, w))
+            .map(|span| span.len() as u64 * tile as u64)
+            .sum::<u64>()
+            .min((w * h) as u64);
+        if let Some((first, last)) = self.flow.levels() {
+            self.p0.ensure(first, last);
+            self.p1.ensure(first, last);
+        }
         // Forward and backward on two threads: the two are independent, and each estimator
         // gives the same flow wherever it runs.
         let Subframes {
             flow,
             back,
-            gray0,
-            gray1,
+            p0,
+            p1,
             f01,
             f10,
+            region,
             ..
         } = self;
-        let computed = std::thread::scope(|scope| {
-            let backward = std::thread::Builder::new()
-                .name("v2ce-flow".into())
-                .spawn_scoped(scope, || back.compute(gray1, gray0, f10));
-            let forward = flow.compute(gray0, gray1, f01);
-            // No thread to be had (or a panic in it) fails the interval's flow: it is
-            // interpolated linearly, with the warning of any failed flow.
-            let backward = match backward {
-                Ok(handle) => handle.join().unwrap_or_else(|_| {
-                    Err(crate::error::Error::Run(
-                        "the backward flow's thread panicked".into(),
-                    ))
-                }),
-                Err(e) => Err(crate::error::Error::Run(format!(
-                    "no thread for the backward flow: {e}"
-                ))),
-            };
-            forward.and(backward)
-        });
+        let region = &*region;
+        let (p0, p1) = (&*p0, &*p1);
+        let (forward, backward) = side_by_side(
+            || flow.compute_on(p0, p1, Some(region), f01),
+            || back.compute_on(p1, p0, Some(region), f10),
+        );
+        // A failed flow (none seen) leaves the interval to linear interpolation, with a
+        // warning.
+        let computed = forward.and(backward);
         self.stats.flow_us += started.elapsed().as_micros() as u64;
         self.stats.flow_intervals += 1;
         if let Err(e) = computed {
@@ -335,30 +420,47 @@ impl Subframes {
             }
             return 1;
         }
-        consistent(&self.f01, &self.f10, w, h, &mut self.ok0);
-        consistent(&self.f10, &self.f01, w, h, &mut self.ok1);
+        {
+            let Subframes {
+                f01,
+                f10,
+                ok0,
+                ok1,
+                region,
+                ..
+            } = self;
+            let (f01, f10, region) = (&*f01, &*f10, &*region);
+            side_by_side(
+                || consistent(f01, f10, w, h, region, ok0),
+                || consistent(f10, f01, w, h, region, ok1),
+            );
+        }
         let (mut before, mut after) = (0f64, 0f64);
         let mut lengths = Vec::with_capacity(2 * changed);
-        let tiles_x = w.div_ceil(tile);
         self.moving.clear();
         self.moving.resize(tiles_x * h.div_ceil(tile), false);
         let step = self.max_step_px as f32;
-        for i in 0..w * h {
-            let (a, b) = (self.gray0[i], self.gray1[i]);
-            if (a as i16 - b as i16).abs() < CHANGE_LEVELS {
-                continue;
-            }
-            before += (a as f64 - b as f64).abs();
-            let [dx, dy] = self.f10[i];
-            let (x, y) = ((i % w) as f32 + dx, (i / w) as f32 + dy);
-            after += (sample(&self.gray0, w, h, x, y) - b as f32).abs() as f64;
-            for (flow, ok) in [(&self.f01, &self.ok0), (&self.f10, &self.ok1)] {
-                if ok[i] {
-                    let [dx, dy] = flow[i];
-                    let length = dx.hypot(dy);
-                    lengths.push(length);
-                    if length > step {
-                        self.moving[(i / w / tile) * tiles_x + (i % w) / tile] = true;
+        let (g0, g1) = (self.p0.gray(), self.p1.gray());
+        for y in 0..h {
+            for span in self.region.row_spans(y, w) {
+                for i in y * w + span.start..y * w + span.end {
+                    let (a, b) = (g0[i], g1[i]);
+                    if a.abs_diff(b) < CHANGE_LEVELS as u8 {
+                        continue;
+                    }
+                    before += (a as f64 - b as f64).abs();
+                    let [dx, dy] = self.f10[i];
+                    let (x, yf) = ((i % w) as f32 + dx, y as f32 + dy);
+                    after += (sample(g0, w, h, x, yf) - b as f32).abs() as f64;
+                    for (flow, ok) in [(&self.f01, &self.ok0), (&self.f10, &self.ok1)] {
+                        if ok[i] {
+                            let [dx, dy] = flow[i];
+                            let length = dx.hypot(dy);
+                            lengths.push(length);
+                            if length > step {
+                                self.moving[(y / tile) * tiles_x + (i % w) / tile] = true;
+                            }
+                        }
                     }
                 }
             }
@@ -658,51 +760,68 @@ impl Governor {
     }
 }
 
-/// 8-bit gamma-encoded gray of linear luminance (times `scale`) into `out`.
-fn gray(luma: &[u16], scale: f32, out: &mut Vec<u8>) {
-    let table = encode_table();
-    out.clear();
-    if scale == 1.0 {
-        out.extend(luma.iter().map(|&v| table[v as usize]));
-    } else {
-        out.extend(
-            luma.iter()
-                .map(|&v| table[(v as f32 * scale + 0.5).min(65535.0) as usize]),
-        );
-    }
-}
-
-/// The sRGB transfer function for every 16-bit linear value, to 8 bits.
-fn encode_table() -> &'static [u8] {
-    static TABLE: std::sync::OnceLock<Vec<u8>> = std::sync::OnceLock::new();
-    TABLE.get_or_init(|| {
-        (0..=u16::MAX)
-            .map(|v| {
-                let c = v as f64 / 65535.0;
-                let e = if c <= 0.0031308 {
-                    12.92 * c
-                } else {
-                    1.055 * c.powf(1.0 / 2.4) - 0.055
-                };
-                (e * 255.0).round().clamp(0.0, 255.0) as u8
-            })
-            .collect()
+/// Runs `a` here and `b` on a second thread at the same time (`b` here too, after `a`, where
+/// no thread can be had), and returns both results.
+fn side_by_side<A, B: Send>(a: impl FnOnce() -> A, b: impl FnOnce() -> B + Send) -> (A, B) {
+    let b = std::sync::Mutex::new(Some(b));
+    let run_b = || b.lock().ok().and_then(|mut f| f.take()).map(|f| f());
+    std::thread::scope(|scope| {
+        let handle = std::thread::Builder::new()
+            .name("v2ce-flow".into())
+            .spawn_scoped(scope, run_b);
+        let ra = a();
+        let rb = match handle {
+            Ok(h) => h.join().unwrap_or_else(|p| std::panic::resume_unwind(p)),
+            Err(_) => None,
+        };
+        // Not run on the thread (none was had): run here.
+        let rb = rb.or_else(run_b).expect("the second job runs once");
+        (ra, rb)
     })
 }
 
 /// Forward-backward consistency of `forward` into `ok`: a pixel's vector and the `backward`
 /// vector where it lands cancel to within `0.5 px + 10%` (squared: `|f + b|^2 < 0.01 (|f|^2
-/// + |b|^2) + 0.5`).
-fn consistent(forward: &[[f32; 2]], backward: &[[f32; 2]], w: usize, h: usize, ok: &mut Vec<bool>) {
+/// + |b|^2) + 0.5`). Checked on `region`'s tiles; elsewhere both flows are zero, which is
+/// consistent.
+fn consistent(
+    forward: &[[f32; 2]],
+    backward: &[[f32; 2]],
+    w: usize,
+    h: usize,
+    region: &Region,
+    ok: &mut Vec<bool>,
+) {
     ok.clear();
-    for (row, line) in forward.chunks_exact(w).enumerate() {
-        ok.extend(line.iter().enumerate().map(|(col, &[fx, fy])| {
-            let (x, y) = (col as f32 + fx, row as f32 + fy);
-            let [bx, by] = backward[nearest(w, h, x, y)];
-            let (sx, sy) = (fx + bx, fy + by);
-            sx * sx + sy * sy < 0.01 * (fx * fx + fy * fy + bx * bx + by * by) + 0.5
-        }));
+    ok.resize(w * h, true);
+    for (row, (line, oks)) in forward.chunks_exact(w).zip(ok.chunks_exact_mut(w)).enumerate() {
+        for span in region.row_spans(row, w) {
+            for col in span {
+                let [fx, fy] = line[col];
+                let (x, y) = (col as f32 + fx, row as f32 + fy);
+                let [bx, by] = backward[nearest(w, h, x, y)];
+                let (sx, sy) = (fx + bx, fy + by);
+                oks[col] = sx * sx + sy * sy < 0.01 * (fx * fx + fy * fy + bx * bx + by * by) + 0.5;
+            }
+        }
     }
+}
+
+/// `tiles` (`tiles_x` across) with every neighbour of a set tile set too.
+fn dilate(tiles: &[bool], tiles_x: usize) -> Vec<bool> {
+    let tiles_y = tiles.len() / tiles_x.max(1);
+    let mut out = vec![false; tiles.len()];
+    for j in 0..tiles_y {
+        for i in 0..tiles_x {
+            if tiles[j * tiles_x + i] {
+                for y in j.saturating_sub(1)..(j + 2).min(tiles_y) {
+                    out[y * tiles_x + i.saturating_sub(1)..y * tiles_x + (i + 2).min(tiles_x)]
+                        .fill(true);
+                }
+            }
+        }
+    }
+    out
 }
 
 /// The index of the pixel nearest `(x, y)`, clamped to the frame.
@@ -727,9 +846,11 @@ fn sample<T: Copy + Into<f32>>(img: &[T], w: usize, h: usize, x: f32, y: f32) ->
     top * (1.0 - fy) + bottom * fy
 }
 
-#[cfg(all(test, feature = "flow"))]
+#[cfg(test)]
 mod tests {
     use super::*;
+
+    const DIS_FAST: (FlowBackend, FlowPreset) = (FlowBackend::Dis, FlowPreset::Fast);
     use crate::event::Event;
     use crate::frame::scene_fn::SceneSource;
     use crate::frame::{Frame, FrameSource};
@@ -785,12 +906,11 @@ mod tests {
     #[test]
     fn the_flow_of_a_moving_bar_is_its_motion() {
         let frames = bar(3);
-        let mut sub = Subframes::new(FlowPreset::Fast, 1.0, 16, W, H).unwrap();
-        gray(&frames[1].luma, 1.0, &mut sub.gray0);
-        gray(&frames[2].luma, 1.0, &mut sub.gray1);
-        sub.flow
-            .compute(&sub.gray0, &sub.gray1, &mut sub.f01)
-            .unwrap();
+        let mut sub = Subframes::new(DIS_FAST, 1.0, 16, W, H).unwrap();
+        let (mut g0, mut g1) = (Vec::new(), Vec::new());
+        gray(&frames[1].luma, 1.0, &mut g0);
+        gray(&frames[2].luma, 1.0, &mut g1);
+        sub.flow.compute(&g0, &g1, &mut sub.f01).unwrap();
         let per_frame = SPEED / FPS;
         let mut err = Vec::new();
         // Frame 1's bar spans [16, 48): its inner columns, away from the rows' ends.
@@ -939,7 +1059,7 @@ mod tests {
         use rand::{Rng, SeedableRng};
         let (w, h) = (37usize, 23usize);
         let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(27);
-        let mut m = Subframes::new(FlowPreset::Fast, 1.0, 8, w as u16, h as u16).unwrap();
+        let mut m = Subframes::new(DIS_FAST, 1.0, 8, w as u16, h as u16).unwrap();
         let flow = |rng: &mut rand_xoshiro::Xoshiro256PlusPlus| -> Vec<[f32; 2]> {
             (0..w * h)
                 .map(|_| {
@@ -995,7 +1115,7 @@ mod tests {
     /// a raise taken back doubles the wait before the next.
     #[test]
     fn a_live_run_lowers_the_cap_to_keep_up() {
-        let mut sub = Subframes::new(FlowPreset::Fast, 1.0, 8, W, H).unwrap();
+        let mut sub = Subframes::new(DIS_FAST, 1.0, 8, W, H).unwrap();
         // Offline: no budget.
         sub.spent(1.0, 33_333);
         assert_eq!(sub.stats().cap, 8);
@@ -1025,7 +1145,7 @@ mod tests {
         calm(&mut sub, CALM_INTERVALS);
         assert_eq!(sub.stats().cap, 2);
         // At cap 1 no flow runs (linear interpolation).
-        let mut sub = Subframes::new(FlowPreset::Fast, 1.0, 1, W, H).unwrap();
+        let mut sub = Subframes::new(DIS_FAST, 1.0, 1, W, H).unwrap();
         let frames = bar(2);
         let (f0, f1) = (&frames[0], &frames[1]);
         assert_eq!(sub.compute(&f0.luma, 1.0, &f1.luma, f0.t, f1.t, 16), 1);

@@ -106,7 +106,7 @@ impl Drop for Ahead {
     }
 }
 
-#[cfg(all(test, feature = "flow"))]
+#[cfg(test)]
 mod tests {
     use crate::event::Event;
     use crate::frame::scene_fn::SceneSource;

@@ -3,7 +3,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
-use crate::flow::FlowPreset;
+use crate::flow::{FlowBackend, FlowPreset};
 use crate::frame::FULL_SCALE;
 use crate::stage1::motion::Motion;
 
@@ -69,6 +69,10 @@ pub struct PhysicsConfig {
     pub max_subframes: u32,
     /// Under `motion = "flow"`: the optical flow's speed/quality preset.
     pub flow_preset: FlowPreset,
+    /// Under `motion = "flow"`: which optical flow computes it: the project's own DIS
+    /// (`dis`), or OpenCV's (`opencv`, for comparison, in a build with the `opencv-flow`
+    /// feature).
+    pub flow_backend: FlowBackend,
 }
 
 /// How the pixel model learns how bright a scene is. A frame's values say only how bright it
@@ -168,6 +172,7 @@ impl Preset {
                 max_step_px: 1.0,
                 max_subframes: 8,
                 flow_preset: FlowPreset::Fast,
+                flow_backend: FlowBackend::Dis,
             },
             Preset::Dvxplorer => PhysicsConfig {
                 threshold_on: 0.25,
@@ -205,6 +210,7 @@ impl Preset {
                 max_step_px: 1.0,
                 max_subframes: 8,
                 flow_preset: FlowPreset::Fast,
+                flow_backend: FlowBackend::Dis,
             },
         }
     }

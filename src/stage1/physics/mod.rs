@@ -258,7 +258,9 @@ impl PhysicsSim {
         let per_pixel = BYTES_PER_PIXEL
             + match cfg.motion {
                 Motion::Linear => 0,
-                Motion::Flow => super::motion::bytes_per_pixel(cfg.max_subframes),
+                Motion::Flow => {
+                    super::motion::bytes_per_pixel(cfg.max_subframes, cfg.flow_backend)
+                }
             };
         crate::limits::memory(
             "frame size",
@@ -286,7 +288,7 @@ impl PhysicsSim {
         let motion = match cfg.motion {
             Motion::Linear => None,
             Motion::Flow => Some(Subframes::new(
-                cfg.flow_preset,
+                (cfg.flow_backend, cfg.flow_preset),
                 cfg.max_step_px,
                 cfg.max_subframes,
                 width,

@@ -37,10 +37,12 @@ impl crate::stage1::TierRecord for PhysicsStats {
             return tiles;
         }
         let intervals = self.frames.saturating_sub(1).max(1);
+        let frame = m.frame_pixels.max(1) as f64 * m.flow_intervals as f64;
         format!(
-            "{tiles}; flow on {} of {intervals} intervals, {:.2} sub-frames per interval, \
-             {:.1} ms of flow per interval, {} fell back to linear",
+            "{tiles}; flow on {} of {intervals} intervals ({:.0}% of their pixels), {:.2} \
+             sub-frames per interval, {:.1} ms of flow per interval, {} fell back to linear",
             m.flow_intervals,
+            100.0 * m.flow_pixels as f64 / frame,
             m.subframes as f64 / intervals as f64,
             m.flow_us as f64 * 1e-3 / m.flow_intervals as f64,
             m.fallbacks
