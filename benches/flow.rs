@@ -12,7 +12,6 @@ use std::path::PathBuf;
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 use v2ce::flow::{DenseFlow, FlowBackend, FlowPreset, Pyramid, Region};
-use v2ce::frame::FrameSource;
 
 /// A frame pair in 8-bit gray.
 struct Pair {
@@ -99,9 +98,10 @@ fn bench(c: &mut Criterion) {
         for preset in [FlowPreset::Ultrafast, FlowPreset::Fast, FlowPreset::Medium] {
             let mut out = Vec::new();
             let mut ours = DenseFlow::new(FlowBackend::Dis, preset, w, h).expect("ours");
-            group.bench_function(BenchmarkId::new(format!("dis/{}", preset.name()), pair.name), |b| {
-                b.iter(|| ours.compute(&pair.a, &pair.b, &mut out).expect("flow"))
-            });
+            group.bench_function(
+                BenchmarkId::new(format!("dis/{}", preset.name()), pair.name),
+                |b| b.iter(|| ours.compute(&pair.a, &pair.b, &mut out).expect("flow")),
+            );
             // The motion model's way: the changed tiles only.
             let region = changed_region(&pair);
             let (first, last) = ours.levels().expect("levels");
@@ -114,7 +114,8 @@ fn bench(c: &mut Criterion) {
                         p1.set(pair.width, pair.height, |g| g.extend_from_slice(&pair.b));
                         p0.ensure(first, last);
                         p1.ensure(first, last);
-                        ours.compute_on(&p0, &p1, Some(&region), &mut out).expect("flow")
+                        ours.compute_on(&p0, &p1, Some(&region), &mut out)
+                            .expect("flow")
                     })
                 },
             );

@@ -291,6 +291,11 @@ pub struct BenchResult {
     pub budget_ms: f64,
     /// Stage 1 as it ran (tier, window, stride, the network's time per window).
     pub stage1: crate::stage1::Stage1Stats,
+    /// The physics tier's sub-frame cap (`motion = "flow"`) over the run: its mean weighted
+    /// by frame time, and its value at the end; `None` for a tier or motion model without one.
+    pub subframe_cap_mean: Option<f64>,
+    /// See `subframe_cap_mean`.
+    pub subframe_cap_final: Option<u32>,
     /// This run's CPU time over its wall time, percent of one core (the receiver's included).
     pub cpu_percent: f64,
     /// The daemon's own threads' CPU (all but the bench's receiver), percent of one core.
@@ -311,7 +316,7 @@ impl BenchResult {
     pub fn line(&self) -> String {
         let l = &self.latency;
         format!(
-            "{}x{} {} L={} stride {}: {:.1} frames/s ({} dropped), {:.0} events/s; capture-to-send latency p50 \
+            "{}x{} {} L={} stride {}: {:.1} frames/s ({} dropped){}, {:.0} events/s; capture-to-send latency p50 \
              {:.2} ms, p90 {:.2} ms, p99 {:.2} ms, max {:.2} ms (budget {:.1} ms: {}); cpu \
              {:.1}% of a core (the daemon's threads {:.1}%: {}); rss {}..{} KiB, first minute max {} KiB, last minute max {} KiB; \
              udp receiver: {} of {} events ({} sent late), arrival minus event time{}, at most {} \
@@ -323,6 +328,10 @@ impl BenchResult {
             self.stage1.stride,
             self.frames as f64 / self.seconds.max(1e-9),
             self.frames_dropped,
+            match (self.subframe_cap_mean, self.subframe_cap_final) {
+                (Some(mean), Some(last)) => format!(", sub-frame cap mean {mean:.2}, final {last}"),
+                _ => String::new(),
+            },
             self.events_per_s,
             l.p50_ms,
             l.p90_ms,
@@ -355,6 +364,15 @@ impl BenchResult {
             self.max_datagrams_per_ms
         )
     }
+}
+
+/// The sub-frame cap's time-weighted mean and final value from a tier's record, where it has
+/// one (the physics tier's `motion`, after some interval ran under `motion = "flow"`).
+fn subframe_cap(stage1: &crate::stage1::Stage1Stats) -> Option<(f64, u32)> {
+    let record: serde_json::Value = serde_json::from_str(stage1.record.json().get()).ok()?;
+    let motion: crate::stage1::motion::MotionStats =
+        serde_json::from_value(record.get("motion")?.clone()).ok()?;
+    Some((motion.cap_mean()?, motion.cap))
 }
 
 /// Measures the daemon for `seconds`: the bundled fixture, resampled to `size`, replayed at
@@ -464,6 +482,7 @@ pub fn bench(
     let minute = rss.len().min(6);
     let max_of = |v: &[u64]| v.iter().copied().max().unwrap_or(0);
     let seconds = s.uptime_s.max(1e-9);
+    let cap = subframe_cap(&report.stage1);
     Ok(BenchResult {
         size,
         end: report.end.clone(),
@@ -489,6 +508,8 @@ pub fn bench(
                     + report.stage1.stride as f64 * 1000.0 / 30.0 / speed.max(1e-9)
             }
         },
+        subframe_cap_mean: cap.map(|c| c.0),
+        subframe_cap_final: cap.map(|c| c.1),
         stage1: report.stage1.clone(),
         cpu_percent: 100.0 * (s.cpu_s - cpu_before) / seconds,
         daemon_cpu_percent: threads

@@ -175,11 +175,7 @@ impl Dis {
         if (p1.width(), p1.height()) != (w, h) {
             return Err(Error::invalid(
                 "flow",
-                format!(
-                    "frames of {w} x {h} and {} x {}",
-                    p1.width(),
-                    p1.height()
-                ),
+                format!("frames of {w} x {h} and {} x {}", p1.width(), p1.height()),
             ));
         }
         let (finest, coarsest) = self.levels(w, h)?;
@@ -216,7 +212,10 @@ impl Dis {
             for &x in &xs {
                 self.active.push(region.is_none_or(|r| {
                     let (x0, y0) = (x as isize * k - margin, y as isize * k - margin);
-                    let (x1, y1) = ((x + ps) as isize * k + margin, (y + ps) as isize * k + margin);
+                    let (x1, y1) = (
+                        (x + ps) as isize * k + margin,
+                        (y + ps) as isize * k + margin,
+                    );
                     r.any(x0, y0, x1, y1)
                 }));
             }
@@ -326,7 +325,8 @@ impl Dis {
             // from its own, the forward pass's search already ended.
             let moved = !reverse || grad.is_some();
             let inverse = if best_err > MATCHED && moved {
-                *tpl.inverse.get_or_insert_with(|| hessian_inverse(l0, tpl.x, tpl.y))
+                *tpl.inverse
+                    .get_or_insert_with(|| hessian_inverse(l0, tpl.x, tpl.y))
             } else {
                 None
             };
@@ -353,14 +353,13 @@ impl Dis {
                     ];
                     let next = clamp_flow(next, tpl.x, tpl.y, l1);
                     let (err, g) = self.patch.step(l1, tpl.x, tpl.y, next);
-                    if !(err < best_err) {
+                    if err.partial_cmp(&best_err) != Some(std::cmp::Ordering::Less) {
                         // The step raised the error: the best flow is the one before it.
                         break;
                     }
                     let settled = err > SETTLED * best_err;
                     (u, best_err, grad) = (next, err, g);
-                    if settled || dx * dx + dy * dy < CONVERGED * CONVERGED || best_err <= MATCHED
-                    {
+                    if settled || dx * dx + dy * dy < CONVERGED * CONVERGED || best_err <= MATCHED {
                         break;
                     }
                 }
@@ -409,16 +408,17 @@ impl Dis {
         }
         // Where no patch reached, the sums are zero and so is the flow.
         self.dense.clear();
-        self.dense.extend(
-            self.sum_u
-                .iter()
-                .zip(&self.sum_v)
-                .zip(&self.sum_w)
-                .map(|((&a, &b), &wt)| {
-                    let r = 1.0 / wt.max(f32::MIN_POSITIVE);
-                    [a * r, b * r]
-                }),
-        );
+        self.dense
+            .extend(
+                self.sum_u
+                    .iter()
+                    .zip(&self.sum_v)
+                    .zip(&self.sum_w)
+                    .map(|((&a, &b), &wt)| {
+                        let r = 1.0 / wt.max(f32::MIN_POSITIVE);
+                        [a * r, b * r]
+                    }),
+            );
     }
 }
 
@@ -551,8 +551,8 @@ impl Taps {
         let (fx0, fy0) = (x0 as f32, y0 as f32);
         let inside = x0 >= 0
             && y0 >= 0
-            && x0 + PATCH as isize + 1 <= l.w as isize
-            && y0 + PATCH as isize + 1 <= l.h as isize;
+            && x0 + (PATCH as isize) < l.w as isize
+            && y0 + (PATCH as isize) < l.h as isize;
         Taps {
             x0,
             y0,
@@ -594,13 +594,19 @@ impl Taps {
     #[inline(always)]
     fn row(&self, l: &Level, r: usize, out: &mut [f32; PATCH]) {
         let (fx, fy) = (self.fx, self.fy);
-        let (a, b, c, d) = ((1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy);
+        let (a, b, c, d) = (
+            (1.0 - fx) * (1.0 - fy),
+            fx * (1.0 - fy),
+            (1.0 - fx) * fy,
+            fx * fy,
+        );
         let y = self.y0 + r as isize;
         if self.inside {
             let at = y as usize * l.w + self.x0 as usize;
             let top: &[f32; PATCH + 1] = l.img[at..at + PATCH + 1].try_into().expect("a row");
-            let bot: &[f32; PATCH + 1] =
-                l.img[at + l.w..at + l.w + PATCH + 1].try_into().expect("a row");
+            let bot: &[f32; PATCH + 1] = l.img[at + l.w..at + l.w + PATCH + 1]
+                .try_into()
+                .expect("a row");
             for c0 in 0..PATCH {
                 out[c0] = a * top[c0] + b * top[c0 + 1] + c * bot[c0] + d * bot[c0 + 1];
             }
@@ -672,13 +678,16 @@ fn upsample(
     for (y, out_row) in out.chunks_exact_mut(w).enumerate().take(h) {
         let spans = match region {
             Some(r) => r.row_spans(y, w),
-            None => vec![0..w],
+            None => std::iter::once(0..w).collect(),
         };
         if spans.is_empty() {
             continue;
         }
         let (j0, j1, fy) = rows[y];
-        let (top, bot) = (&flat[2 * j0 * lw..2 * (j0 + 1) * lw], &flat[2 * j1 * lw..2 * (j1 + 1) * lw]);
+        let (top, bot) = (
+            &flat[2 * j0 * lw..2 * (j0 + 1) * lw],
+            &flat[2 * j1 * lw..2 * (j1 + 1) * lw],
+        );
         for ((l, &a), &b) in line.iter_mut().zip(top).zip(bot) {
             *l = (a + (b - a) * fy) * k;
         }

@@ -140,7 +140,10 @@ impl Region {
     pub fn any(&self, x0: isize, y0: isize, x1: isize, y1: isize) -> bool {
         let t = self.tile as isize;
         let clip = |v: isize, n: usize| v.clamp(0, n as isize) as usize;
-        let (i0, j0) = (clip(x0.div_euclid(t), self.tiles_x), clip(y0.div_euclid(t), self.tiles_y));
+        let (i0, j0) = (
+            clip(x0.div_euclid(t), self.tiles_x),
+            clip(y0.div_euclid(t), self.tiles_y),
+        );
         let (i1, j1) = (
             clip((x1 + t - 1).div_euclid(t), self.tiles_x),
             clip((y1 + t - 1).div_euclid(t), self.tiles_y),
@@ -185,7 +188,7 @@ pub struct DenseFlow {
 }
 
 enum Engine {
-    Dis(dis::Dis),
+    Dis(Box<dis::Dis>),
     #[cfg(feature = "opencv-flow")]
     Opencv(opencv::OpencvFlow),
 }
@@ -195,7 +198,7 @@ impl DenseFlow {
     /// without the `opencv-flow` feature, or when OpenCV cannot make one.
     pub fn new(backend: FlowBackend, preset: FlowPreset, width: u16, height: u16) -> Result<Self> {
         let engine = match backend {
-            FlowBackend::Dis => Engine::Dis(dis::Dis::new(preset.params())),
+            FlowBackend::Dis => Engine::Dis(Box::new(dis::Dis::new(preset.params()))),
             #[cfg(feature = "opencv-flow")]
             FlowBackend::Opencv => Engine::Opencv(opencv::OpencvFlow::new(preset)?),
             #[cfg(not(feature = "opencv-flow"))]

@@ -7,9 +7,10 @@ use crate::error::{Error, Result};
 
 use super::FlowPreset;
 
-/// OpenCV's estimator with a preset's settings.
+/// OpenCV's estimator with a preset's settings (behind a lock, so that the motion model that
+/// holds it can be shared between the threads that blend its sub-frames).
 pub struct OpencvFlow {
-    dis: opencv::core::Ptr<opencv::video::DISOpticalFlow>,
+    dis: std::sync::Mutex<opencv::core::Ptr<opencv::video::DISOpticalFlow>>,
 }
 
 impl OpencvFlow {
@@ -26,7 +27,9 @@ impl OpencvFlow {
         if preset == FlowPreset::Fast {
             dis.set_finest_scale(1).map_err(cv)?;
         }
-        Ok(OpencvFlow { dis })
+        Ok(OpencvFlow {
+            dis: std::sync::Mutex::new(dis),
+        })
     }
 
     /// The flow from `from` to `to` (`width x height` gray each) into `out`.
@@ -48,7 +51,11 @@ impl OpencvFlow {
         // `[f32; 2]` and `Vec2f` have one layout: two f32 in a row.
         let cells: &mut [Vec2f] = vec2f(out);
         let mut flow = Mat::new_rows_cols_with_data_mut(rows, cols, cells).map_err(cv)?;
-        self.dis.calc(&a, &b, &mut flow).map_err(cv)?;
+        let dis = self
+            .dis
+            .get_mut()
+            .map_err(|_| Error::Run("optical flow (OpenCV): a thread failed with it".into()))?;
+        dis.calc(&a, &b, &mut flow).map_err(cv)?;
         Ok(())
     }
 }

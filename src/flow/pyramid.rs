@@ -152,7 +152,11 @@ fn down<T: Copy + Into<f32>>(src: &[T], w: usize, h: usize, out: &mut Vec<f32>) 
         }
         // Before the row: x[-1] = x[0]; after it: x[w] = x[w - 1] (and x[w + 1] too).
         odd[0] = even[1];
-        even[w2 + 1] = if w % 2 == 0 { odd[w2] } else { even[w2] };
+        even[w2 + 1] = if w.is_multiple_of(2) {
+            odd[w2]
+        } else {
+            even[w2]
+        };
         let row = &mut rows[y * w2..(y + 1) * w2];
         for (i, r) in row.iter_mut().enumerate() {
             *r = (odd[i] + 3.0 * (even[i + 1] + odd[i + 1]) + even[i + 2]) * 0.125;
@@ -219,7 +223,9 @@ mod tests {
     fn a_ramp_keeps_its_slope_and_positions() {
         let (w, h) = (128usize, 64usize);
         let mut p = Pyramid::new();
-        p.set(w, h, |g| g.extend((0..w * h).map(|i| (i % w + 2 * (i / w)) as u8)));
+        p.set(w, h, |g| {
+            g.extend((0..w * h).map(|i| (i % w + 2 * (i / w)) as u8))
+        });
         p.ensure(1, 3);
         for s in 1..=3 {
             let l = p.level(s);
@@ -231,7 +237,10 @@ mod tests {
                     let (fx, fy) = ((x as f32 + 0.5) * k - 0.5, (y as f32 + 0.5) * k - 0.5);
                     let want = fx + 2.0 * fy;
                     let got = l.img[y * l.w + x];
-                    assert!((got - want).abs() < 1e-3, "level {s} ({x}, {y}): {got} vs {want}");
+                    assert!(
+                        (got - want).abs() < 1e-3,
+                        "level {s} ({x}, {y}): {got} vs {want}"
+                    );
                     assert!((l.gx[y * l.w + x] - k).abs() < 1e-3);
                     assert!((l.gy[y * l.w + x] - 2.0 * k).abs() < 1e-3);
                 }

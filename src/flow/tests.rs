@@ -43,7 +43,14 @@ fn errors(
 
 const PRESETS: [FlowPreset; 3] = [FlowPreset::Ultrafast, FlowPreset::Fast, FlowPreset::Medium];
 
-fn flow_of(backend: FlowBackend, preset: FlowPreset, w: usize, h: usize, a: &[u8], b: &[u8]) -> Vec<[f32; 2]> {
+fn flow_of(
+    backend: FlowBackend,
+    preset: FlowPreset,
+    w: usize,
+    h: usize,
+    a: &[u8],
+    b: &[u8],
+) -> Vec<[f32; 2]> {
     let mut flow = DenseFlow::new(backend, preset, w as u16, h as u16).unwrap();
     let mut out = Vec::new();
     flow.compute(a, b, &mut out).unwrap();
@@ -60,7 +67,10 @@ fn a_shifted_texture_gives_its_shift() {
             let out = flow_of(FlowBackend::Dis, preset, w, h, &a, &b);
             let (median, p90) = errors(&out, w, h, 10, |_, _| (dx, dy));
             // Measured: medians 0.02-0.06 px.
-            assert!(median < 0.25 && p90 < 0.6, "{preset:?} ({dx}, {dy}): {median} / {p90}");
+            assert!(
+                median < 0.25 && p90 < 0.6,
+                "{preset:?} ({dx}, {dy}): {median} / {p90}"
+            );
         }
     }
 }
@@ -84,7 +94,10 @@ fn a_rotation_and_a_zoom_give_their_flow() {
     for preset in PRESETS {
         let out = flow_of(FlowBackend::Dis, preset, w, h, &fa, &fb);
         let (median, p90) = errors(&out, w, h, 12, rotation);
-        assert!(median < 0.3 && p90 < 0.8, "rotation, {preset:?}: {median} / {p90}");
+        assert!(
+            median < 0.3 && p90 < 0.8,
+            "rotation, {preset:?}: {median} / {p90}"
+        );
     }
     // A zoom of 5%: 4 px at the left and right edges.
     let k = 1.05;
@@ -93,7 +106,10 @@ fn a_rotation_and_a_zoom_give_their_flow() {
     for preset in PRESETS {
         let out = flow_of(FlowBackend::Dis, preset, w, h, &fa, &fb);
         let (median, p90) = errors(&out, w, h, 12, zoom);
-        assert!(median < 0.3 && p90 < 0.8, "zoom, {preset:?}: {median} / {p90}");
+        assert!(
+            median < 0.3 && p90 < 0.8,
+            "zoom, {preset:?}: {median} / {p90}"
+        );
     }
 }
 
@@ -143,7 +159,14 @@ fn region_queries_match_the_tiles() {
     let (tile, tx, ty) = (8usize, 5usize, 4usize);
     let active: Vec<bool> = (0..tx * ty).map(|i| i % 7 == 3).collect();
     let r = Region::new(tile, tx, &active);
-    for (x0, y0, x1, y1) in [(-20, -20, 100, 100), (0, 0, 8, 8), (24, 0, 32, 8), (9, 9, 10, 10), (-5, 17, 3, 30), (39, 31, 80, 90)] {
+    for (x0, y0, x1, y1) in [
+        (-20, -20, 100, 100),
+        (0, 0, 8, 8),
+        (24, 0, 32, 8),
+        (9, 9, 10, 10),
+        (-5, 17, 3, 30),
+        (39, 31, 80, 90),
+    ] {
         let mut want = false;
         for j in 0..ty {
             for i in 0..tx {
@@ -175,8 +198,18 @@ fn bad_input_is_an_error_or_a_still_flow() {
     for preset in PRESETS {
         for (a, b) in [(0u8, 0u8), (255, 255), (0, 255), (90, 140)] {
             let (w, h) = (64usize, 48usize);
-            let out = flow_of(FlowBackend::Dis, preset, w, h, &vec![a; w * h], &vec![b; w * h]);
-            assert!(out.iter().all(|&f| f == [0.0, 0.0]), "{preset:?} {a} -> {b}");
+            let out = flow_of(
+                FlowBackend::Dis,
+                preset,
+                w,
+                h,
+                &vec![a; w * h],
+                &vec![b; w * h],
+            );
+            assert!(
+                out.iter().all(|&f| f == [0.0, 0.0]),
+                "{preset:?} {a} -> {b}"
+            );
         }
     }
     // Noise against noise: finite, bounded by the frame.
@@ -186,7 +219,14 @@ fn bad_input_is_an_error_or_a_still_flow() {
             .map(|i| ((i as u64 * 2_654_435_761 + seed).wrapping_mul(0x9E37_79B9) >> 24) as u8)
             .collect()
     };
-    let out = flow_of(FlowBackend::Dis, FlowPreset::Medium, w, h, &noise(1), &noise(2));
+    let out = flow_of(
+        FlowBackend::Dis,
+        FlowPreset::Medium,
+        w,
+        h,
+        &noise(1),
+        &noise(2),
+    );
     assert!(out
         .iter()
         .all(|f| f[0].abs() <= w as f32 + 16.0 && f[1].abs() <= h as f32 + 16.0));
@@ -210,9 +250,18 @@ fn the_flow_is_as_good_as_opencvs() {
     let (cx, cy) = (w as f64 / 2.0, h as f64 / 2.0);
     let a = 3f64.to_radians();
     let (c, s) = (a.cos(), a.sin());
-    type Case = (Box<dyn Fn(f64, f64) -> (f64, f64)>, Box<dyn Fn(f64, f64) -> (f64, f64)>);
+    type Case = (
+        Box<dyn Fn(f64, f64) -> (f64, f64)>,
+        Box<dyn Fn(f64, f64) -> (f64, f64)>,
+    );
     let cases: Vec<(&str, Case)> = vec![
-        ("shift", (Box::new(|x, y| (x - 5.5, y + 2.25)), Box::new(|_, _| (5.5, -2.25)))),
+        (
+            "shift",
+            (
+                Box::new(|x, y| (x - 5.5, y + 2.25)),
+                Box::new(|_, _| (5.5, -2.25)),
+            ),
+        ),
         (
             "rotation",
             (

@@ -75,26 +75,6 @@ pub fn ycbcr_to_rgb(y: u8, cb: u8, cr: u8, full_range: bool) -> (u8, u8, u8) {
     (q(r), q(g), q(b))
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn transfer_function_and_weights() {
-        assert_eq!(gray_to_luma(0), 0);
-        assert_eq!(gray_to_luma(255), 65535);
-        // Mid-gray 128 is about 21.6% of full linear light, not 50%.
-        let mid = gray_to_luma(128) as f64 / 65535.0;
-        assert!((mid - 0.2158).abs() < 0.001, "{mid}");
-        // Pure green is far brighter than pure blue at the same code value.
-        assert!(rgb_to_luma(0, 255, 0) > 9 * rgb_to_luma(0, 0, 255));
-        assert_eq!(rgb_to_luma(255, 255, 255), 65535);
-        assert_eq!(ycbcr_to_rgb(16, 128, 128, false), (0, 0, 0));
-        assert_eq!(ycbcr_to_rgb(235, 128, 128, false), (255, 255, 255));
-        assert_eq!(ycbcr_to_rgb(200, 128, 128, true), (200, 200, 200));
-    }
-}
-
 /// 8-bit gamma-encoded (sRGB) gray of linear luminance (times `scale`, saturating) into `out`:
 /// the optical flow's input.
 pub fn luma_to_gray(luma: &[u16], scale: f32, out: &mut Vec<u8>) {
@@ -126,4 +106,24 @@ fn encode_table() -> &'static [u8] {
             })
             .collect()
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn transfer_function_and_weights() {
+        assert_eq!(gray_to_luma(0), 0);
+        assert_eq!(gray_to_luma(255), 65535);
+        // Mid-gray 128 is about 21.6% of full linear light, not 50%.
+        let mid = gray_to_luma(128) as f64 / 65535.0;
+        assert!((mid - 0.2158).abs() < 0.001, "{mid}");
+        // Pure green is far brighter than pure blue at the same code value.
+        assert!(rgb_to_luma(0, 255, 0) > 9 * rgb_to_luma(0, 0, 255));
+        assert_eq!(rgb_to_luma(255, 255, 255), 65535);
+        assert_eq!(ycbcr_to_rgb(16, 128, 128, false), (0, 0, 0));
+        assert_eq!(ycbcr_to_rgb(235, 128, 128, false), (255, 255, 255));
+        assert_eq!(ycbcr_to_rgb(200, 128, 128, true), (200, 200, 200));
+    }
 }

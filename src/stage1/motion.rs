@@ -95,7 +95,7 @@ pub fn bytes_per_pixel(max_subframes: u32, backend: FlowBackend) -> u64 {
 }
 
 /// What the motion model did, for the physics tier's record.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct MotionStats {
     /// Intervals whose flow was computed.
     pub flow_intervals: u64,
@@ -116,6 +116,19 @@ pub struct MotionStats {
     pub cap_lowered: u64,
     /// The sub-frame cap now (intervals per frame interval; 1: linear).
     pub cap: u32,
+    /// The cap integrated over the frame time stepped (cap times each interval's us), and
+    /// that time, us: their ratio is the cap's time-weighted mean.
+    pub cap_us: u64,
+    /// See `cap_us`.
+    pub paced_us: u64,
+}
+
+impl MotionStats {
+    /// The sub-frame cap's mean over the frame time stepped, weighted by time; `None` before
+    /// any interval.
+    pub fn cap_mean(&self) -> Option<f64> {
+        (self.paced_us > 0).then(|| self.cap_us as f64 / self.paced_us as f64)
+    }
 }
 
 impl MotionStats {
@@ -129,6 +142,8 @@ impl MotionStats {
         self.frame_pixels = o.frame_pixels;
         self.cap_lowered += o.cap_lowered;
         self.cap = o.cap;
+        self.cap_us = self.cap_us.saturating_add(o.cap_us);
+        self.paced_us = self.paced_us.saturating_add(o.paced_us);
     }
 }
 
@@ -238,6 +253,13 @@ impl Subframes {
         t1: i64,
         tile: usize,
     ) -> usize {
+        // The cap this interval runs under, over its frame time.
+        let span = t1.saturating_sub(t0).max(0) as u64;
+        self.stats.paced_us = self.stats.paced_us.saturating_add(span);
+        self.stats.cap_us = self
+            .stats
+            .cap_us
+            .saturating_add(span.saturating_mul(u64::from(self.cap)));
         let k = self.intervals(f0, scale0, f1, t1 - t0, tile);
         self.ready = k > 1;
         if k <= 1 {
@@ -260,7 +282,12 @@ impl Subframes {
             }
         };
         let split = first.len();
-        side_by_side(|| make(first, 0), || make(second, split));
+        let moving = self.moving.iter().filter(|&&m| m).count() * tile * tile * (k - 1);
+        side_by_side(
+            moving >= PARALLEL_PIXELS,
+            || make(first, 0),
+            || make(second, split),
+        );
         self.frames = frames;
         k
     }
@@ -379,12 +406,13 @@ impl Subframes {
         // tile lands in one: what moved changed both where it was and where it went).
         let tiles_x = w.div_ceil(tile);
         self.region = Region::new(tile, tiles_x, &dilate(&self.changed_tiles, tiles_x));
-        self.stats.flow_pixels += (0..h)
+        let region_pixels = ((0..h)
             .step_by(tile)
             .flat_map(|y| self.region.row_spans(y, w))
-            .map(|span| span.len() as u64 * tile as u64)
-            .sum::<u64>()
-            .min((w * h) as u64);
+            .map(|span| span.len() * tile)
+            .sum::<usize>())
+        .min(w * h);
+        self.stats.flow_pixels += region_pixels as u64;
         if let Some((first, last)) = self.flow.levels() {
             self.p0.ensure(first, last);
             self.p1.ensure(first, last);
@@ -403,7 +431,9 @@ impl Subframes {
         } = self;
         let region = &*region;
         let (p0, p1) = (&*p0, &*p1);
+        let parallel = region_pixels >= PARALLEL_PIXELS;
         let (forward, backward) = side_by_side(
+            parallel,
             || flow.compute_on(p0, p1, Some(region), f01),
             || back.compute_on(p1, p0, Some(region), f10),
         );
@@ -431,6 +461,7 @@ impl Subframes {
             } = self;
             let (f01, f10, region) = (&*f01, &*f10, &*region);
             side_by_side(
+                parallel,
                 || consistent(f01, f10, w, h, region, ok0),
                 || consistent(f10, f01, w, h, region, ok1),
             );
@@ -760,9 +791,19 @@ impl Governor {
     }
 }
 
-/// Runs `a` here and `b` on a second thread at the same time (`b` here too, after `a`, where
-/// no thread can be had), and returns both results.
-fn side_by_side<A, B: Send>(a: impl FnOnce() -> A, b: impl FnOnce() -> B + Send) -> (A, B) {
+/// Work on fewer pixels than this runs on one thread: starting a second costs more.
+const PARALLEL_PIXELS: usize = 32 * 1024;
+
+/// Runs `a` here and, when `parallel`, `b` on a second thread at the same time (`b` here too,
+/// after `a`, where not parallel or no thread can be had), and returns both results.
+fn side_by_side<A, B: Send>(
+    parallel: bool,
+    a: impl FnOnce() -> A,
+    b: impl FnOnce() -> B + Send,
+) -> (A, B) {
+    if !parallel {
+        return (a(), b());
+    }
     let b = std::sync::Mutex::new(Some(b));
     let run_b = || b.lock().ok().and_then(|mut f| f.take()).map(|f| f());
     std::thread::scope(|scope| {
@@ -781,8 +822,8 @@ fn side_by_side<A, B: Send>(a: impl FnOnce() -> A, b: impl FnOnce() -> B + Send)
 }
 
 /// Forward-backward consistency of `forward` into `ok`: a pixel's vector and the `backward`
-/// vector where it lands cancel to within `0.5 px + 10%` (squared: `|f + b|^2 < 0.01 (|f|^2
-/// + |b|^2) + 0.5`). Checked on `region`'s tiles; elsewhere both flows are zero, which is
+/// vector where it lands cancel to within `0.5 px + 10%` (squared: `|f + b|^2 < 0.01 (|f|^2 +
+/// |b|^2) + 0.5`). Checked on `region`'s tiles; elsewhere both flows are zero, which is
 /// consistent.
 fn consistent(
     forward: &[[f32; 2]],
@@ -794,7 +835,11 @@ fn consistent(
 ) {
     ok.clear();
     ok.resize(w * h, true);
-    for (row, (line, oks)) in forward.chunks_exact(w).zip(ok.chunks_exact_mut(w)).enumerate() {
+    for (row, (line, oks)) in forward
+        .chunks_exact(w)
+        .zip(ok.chunks_exact_mut(w))
+        .enumerate()
+    {
         for span in region.row_spans(row, w) {
             for col in span {
                 let [fx, fy] = line[col];

@@ -258,9 +258,7 @@ impl PhysicsSim {
         let per_pixel = BYTES_PER_PIXEL
             + match cfg.motion {
                 Motion::Linear => 0,
-                Motion::Flow => {
-                    super::motion::bytes_per_pixel(cfg.max_subframes, cfg.flow_backend)
-                }
+                Motion::Flow => super::motion::bytes_per_pixel(cfg.max_subframes, cfg.flow_backend),
             };
         crate::limits::memory(
             "frame size",
