@@ -61,30 +61,10 @@ fn pairs() -> Vec<Pair> {
     out
 }
 
-/// The tiles (16 px) where some pixel changed by 16 levels, and their neighbours: the
-/// motion model's region.
+/// The motion model's region: the 16 px tiles where some pixel changed by 16 levels, and their
+/// neighbours.
 fn changed_region(p: &Pair) -> Region {
-    let tile = 16;
-    let (tx, ty) = (p.width.div_ceil(tile), p.height.div_ceil(tile));
-    let mut changed = vec![false; tx * ty];
-    for (i, (&a, &b)) in p.a.iter().zip(&p.b).enumerate() {
-        if a.abs_diff(b) >= 16 {
-            changed[(i / p.width / tile) * tx + (i % p.width) / tile] = true;
-        }
-    }
-    let mut grown = changed.clone();
-    for j in 0..ty {
-        for i in 0..tx {
-            if changed[j * tx + i] {
-                for y in j.saturating_sub(1)..(j + 2).min(ty) {
-                    for x in i.saturating_sub(1)..(i + 2).min(tx) {
-                        grown[y * tx + x] = true;
-                    }
-                }
-            }
-        }
-    }
-    Region::new(tile, tx, &grown)
+    Region::around_changes(&p.a, &p.b, p.width, 16, 16).0
 }
 
 fn bench(c: &mut Criterion) {

@@ -163,8 +163,9 @@ impl Dis {
 
     /// The flow from `p0`'s frame to `p1`'s into `out` (one `[dx, dy]` per pixel, frame
     /// pixels): on `region`'s tiles only where one is given (zero elsewhere), else the whole
-    /// frame. Both pyramids must hold levels `levels(..)` (see [`Pyramid::ensure`]).
-    pub fn compute(
+    /// frame. Both pyramids must be of one size ([`super::DenseFlow::compute_on`] checks) and
+    /// hold levels `levels(..)` (see [`Pyramid::ensure`]).
+    pub(crate) fn compute(
         &mut self,
         p0: &Pyramid,
         p1: &Pyramid,
@@ -172,12 +173,6 @@ impl Dis {
         out: &mut Vec<[f32; 2]>,
     ) -> Result<()> {
         let (w, h) = (p0.width(), p0.height());
-        if (p1.width(), p1.height()) != (w, h) {
-            return Err(Error::invalid(
-                "flow",
-                format!("frames of {w} x {h} and {} x {}", p1.width(), p1.height()),
-            ));
-        }
         let (finest, coarsest) = self.levels(w, h)?;
         out.clear();
         out.resize(w * h, [0.0; 2]);
@@ -674,12 +669,14 @@ fn upsample(
     let (cols, rows) = (taps(w, lw), taps(h, lh));
     let mut line = vec![0f32; 2 * lw];
     let mut padded: Vec<[f32; 2]> = Vec::with_capacity(lw + 2);
+    let mut spans: Vec<std::ops::Range<usize>> = Vec::new();
     let flat = flow.as_flattened();
     for (y, out_row) in out.chunks_exact_mut(w).enumerate().take(h) {
-        let spans = match region {
-            Some(r) => r.row_spans(y, w),
-            None => std::iter::once(0..w).collect(),
-        };
+        spans.clear();
+        match region {
+            Some(r) => spans.extend(r.row_spans(y, w)),
+            None => spans.push(0..w),
+        }
         if spans.is_empty() {
             continue;
         }
@@ -699,7 +696,7 @@ fn upsample(
             padded.push([line[0], line[1]]);
             padded.extend(line.chunks_exact(2).map(|p| [p[0], p[1]]));
             padded.push(padded[lw]);
-            for span in spans {
+            for span in spans.iter().cloned() {
                 for x in span {
                     let i = x / 2;
                     let (near, far) = (padded[i + 1], padded[i + 2 * (x % 2)]);
@@ -711,7 +708,7 @@ fn upsample(
             }
             continue;
         }
-        for span in spans {
+        for span in spans.iter().cloned() {
             for (o, &(i0, i1, fx)) in out_row[span.clone()].iter_mut().zip(&cols[span]) {
                 let (u0, v0) = (line[2 * i0], line[2 * i0 + 1]);
                 let (u1, v1) = (line[2 * i1], line[2 * i1 + 1]);

@@ -156,27 +156,84 @@ impl Region {
     }
 
     /// The runs of active tiles on pixel row `y`, as column ranges within `0..w`.
-    pub fn row_spans(&self, y: usize, w: usize) -> Vec<std::ops::Range<usize>> {
+    pub fn row_spans(
+        &self,
+        y: usize,
+        w: usize,
+    ) -> impl Iterator<Item = std::ops::Range<usize>> + '_ {
         let j = y / self.tile;
-        let mut spans = Vec::new();
-        if j >= self.tiles_y {
-            return spans;
-        }
-        let row = &self.active[j * self.tiles_x..(j + 1) * self.tiles_x];
+        let row = if j < self.tiles_y {
+            &self.active[j * self.tiles_x..(j + 1) * self.tiles_x]
+        } else {
+            &[]
+        };
         let mut i = 0;
-        while i < row.len() {
-            if !row[i] {
-                i += 1;
-                continue;
+        std::iter::from_fn(move || {
+            while i < row.len() {
+                if !row[i] {
+                    i += 1;
+                    continue;
+                }
+                let run = row[i..].iter().take_while(|&&a| a).count();
+                let (a, b) = ((i * self.tile).min(w), ((i + run) * self.tile).min(w));
+                i += run;
+                if a < b {
+                    return Some(a..b);
+                }
             }
-            let run = row[i..].iter().take_while(|&&a| a).count();
-            let (a, b) = ((i * self.tile).min(w), ((i + run) * self.tile).min(w));
-            if a < b {
-                spans.push(a..b);
+            None
+        })
+    }
+
+    /// The region the motion model computes the flow on: the `tile`-pixel tiles of two gray
+    /// frames (`w` wide) where some pixel changed by `levels` or more, and every neighbour of
+    /// those (what moved out of a changed tile lands in one: it changed both where it was and
+    /// where it went). Also returns how many pixels changed.
+    pub fn around_changes(
+        g0: &[u8],
+        g1: &[u8],
+        w: usize,
+        tile: usize,
+        levels: u8,
+    ) -> (Self, usize) {
+        let tile = tile.max(1);
+        let w = w.max(1);
+        let h = g0.len().min(g1.len()) / w;
+        let (tiles_x, tiles_y) = (w.div_ceil(tile), h.div_ceil(tile));
+        let mut changed_tiles = vec![false; tiles_x * tiles_y];
+        let mut changed = 0;
+        for (y, (r0, r1)) in g0.chunks_exact(w).zip(g1.chunks_exact(w)).enumerate() {
+            let tiles = &mut changed_tiles[(y / tile) * tiles_x..][..tiles_x];
+            for (t, (c0, c1)) in tiles.iter_mut().zip(r0.chunks(tile).zip(r1.chunks(tile))) {
+                let n = c0
+                    .iter()
+                    .zip(c1)
+                    .filter(|(&a, &b)| a.abs_diff(b) >= levels)
+                    .count();
+                changed += n;
+                *t |= n > 0;
             }
-            i += run;
         }
-        spans
+        let mut grown = vec![false; changed_tiles.len()];
+        for j in 0..tiles_y {
+            for i in 0..tiles_x {
+                if changed_tiles[j * tiles_x + i] {
+                    for y in j.saturating_sub(1)..(j + 2).min(tiles_y) {
+                        grown
+                            [y * tiles_x + i.saturating_sub(1)..y * tiles_x + (i + 2).min(tiles_x)]
+                            .fill(true);
+                    }
+                }
+            }
+        }
+        (Region::new(tile, tiles_x, &grown), changed)
+    }
+
+    /// Pixels of a `w x h` frame on the region's tiles.
+    pub fn pixels(&self, w: usize, h: usize) -> usize {
+        (0..h)
+            .map(|y| self.row_spans(y, w).map(|s| s.len()).sum::<usize>())
+            .sum()
     }
 }
 

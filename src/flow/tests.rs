@@ -177,7 +177,7 @@ fn region_queries_match_the_tiles() {
         }
         assert_eq!(r.any(x0, y0, x1, y1), want, "({x0}, {y0}) - ({x1}, {y1})");
     }
-    let spans = r.row_spans(9, 37);
+    let spans: Vec<_> = r.row_spans(9, 37).collect();
     let want: Vec<_> = (0..tx)
         .filter(|&i| active[tx + i])
         .map(|i| i * tile..((i + 1) * tile).min(37))

@@ -62,7 +62,7 @@ pub enum Motion {
 /// smallest change that makes an event at mid-gray (a log step of 0.2-0.3 is 16-20 levels at
 /// 128), and above the read noise of an APS frame (a few levels), which the flow cannot
 /// explain.
-const CHANGE_LEVELS: i16 = 16;
+const CHANGE_LEVELS: u8 = 16;
 /// An interval with fewer changed pixels than this has no motion worth a flow.
 const MIN_CHANGED: usize = 16;
 /// Warping must leave at most this share of the changed pixels' difference, or the interval
@@ -161,8 +161,7 @@ pub struct Subframes {
     kept: Pyramid,
     kept_luma: Vec<u16>,
     kept_valid: bool,
-    /// Per tile: some pixel changed; and the region the flow is computed on.
-    changed_tiles: Vec<bool>,
+    /// The region the flow is computed on (the changed tiles and their neighbours).
     region: Region,
     width: usize,
     height: usize,
@@ -203,7 +202,6 @@ impl Subframes {
             kept: Pyramid::new(),
             kept_luma: Vec::new(),
             kept_valid: false,
-            changed_tiles: Vec::new(),
             region: Region::default(),
             width: width.into(),
             height: height.into(),
@@ -370,48 +368,18 @@ impl Subframes {
         self.p1.set(w, h, |g| gray(f1, 1.0, g));
     }
 
-    /// The changed pixels and tiles of the loaded frames: how many pixels changed by
-    /// `CHANGE_LEVELS` or more, with `changed_tiles` set where some did.
-    fn changes(&mut self, tile: usize) -> usize {
-        let (w, h) = (self.width, self.height);
-        let tiles_x = w.div_ceil(tile);
-        self.changed_tiles.clear();
-        self.changed_tiles.resize(tiles_x * h.div_ceil(tile), false);
-        let (g0, g1) = (self.p0.gray(), self.p1.gray());
-        let mut changed = 0;
-        for (y, (r0, r1)) in g0.chunks_exact(w).zip(g1.chunks_exact(w)).enumerate() {
-            let tiles = &mut self.changed_tiles[(y / tile) * tiles_x..][..tiles_x];
-            for (t, (c0, c1)) in tiles.iter_mut().zip(r0.chunks(tile).zip(r1.chunks(tile))) {
-                let n = c0
-                    .iter()
-                    .zip(c1)
-                    .filter(|(&a, &b)| a.abs_diff(b) >= CHANGE_LEVELS as u8)
-                    .count();
-                changed += n;
-                *t |= n > 0;
-            }
-        }
-        changed
-    }
-
     /// The flow of the loaded frames and the intervals it asks for.
     fn flow_intervals(&mut self, span_us: i64, tile: usize) -> usize {
         let (w, h) = (self.width, self.height);
-        let changed = self.changes(tile);
+        let (region, changed) =
+            Region::around_changes(self.p0.gray(), self.p1.gray(), w, tile, CHANGE_LEVELS);
         if changed < MIN_CHANGED {
             return 1;
         }
         let started = Instant::now();
-        // The flow on the changed tiles and their neighbours (a flow that leaves a changed
-        // tile lands in one: what moved changed both where it was and where it went).
+        self.region = region;
         let tiles_x = w.div_ceil(tile);
-        self.region = Region::new(tile, tiles_x, &dilate(&self.changed_tiles, tiles_x));
-        let region_pixels = ((0..h)
-            .step_by(tile)
-            .flat_map(|y| self.region.row_spans(y, w))
-            .map(|span| span.len() * tile)
-            .sum::<usize>())
-        .min(w * h);
+        let region_pixels = self.region.pixels(w, h);
         self.stats.flow_pixels += region_pixels as u64;
         if let Some((first, last)) = self.flow.levels() {
             self.p0.ensure(first, last);
@@ -476,7 +444,7 @@ impl Subframes {
             for span in self.region.row_spans(y, w) {
                 for i in y * w + span.start..y * w + span.end {
                     let (a, b) = (g0[i], g1[i]);
-                    if a.abs_diff(b) < CHANGE_LEVELS as u8 {
+                    if a.abs_diff(b) < CHANGE_LEVELS {
                         continue;
                     }
                     before += (a as f64 - b as f64).abs();
@@ -850,23 +818,6 @@ fn consistent(
             }
         }
     }
-}
-
-/// `tiles` (`tiles_x` across) with every neighbour of a set tile set too.
-fn dilate(tiles: &[bool], tiles_x: usize) -> Vec<bool> {
-    let tiles_y = tiles.len() / tiles_x.max(1);
-    let mut out = vec![false; tiles.len()];
-    for j in 0..tiles_y {
-        for i in 0..tiles_x {
-            if tiles[j * tiles_x + i] {
-                for y in j.saturating_sub(1)..(j + 2).min(tiles_y) {
-                    out[y * tiles_x + i.saturating_sub(1)..y * tiles_x + (i + 2).min(tiles_x)]
-                        .fill(true);
-                }
-            }
-        }
-    }
-    out
 }
 
 /// The index of the pixel nearest `(x, y)`, clamped to the frame.
