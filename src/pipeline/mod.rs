@@ -400,7 +400,9 @@ pub fn run(
 /// tier's sub-frames); then whole frames that would be late are skipped before Stage 1 spends
 /// time on them (the lag budget this returns); last, full queues evict. Under `block`, which
 /// loses nothing, it runs as offline and a slow machine lags instead. An offline source (read
-/// as fast as Stage 1 takes it) lets Stage 1 look a frame ahead ([`Stage1::look_ahead`]).
+/// as fast as Stage 1 takes it) lets Stage 1 look a frame ahead ([`Stage1::look_ahead`]); a
+/// live one within the lag budget, where the outputs hold events back
+/// ([`Stage1::look_ahead_within`]).
 fn shedding(
     source: &Source,
     stage1: &mut dyn Stage1,
@@ -417,14 +419,23 @@ fn shedding(
     if stage1.stats().window > 1 {
         return None;
     }
-    Some(options.lag_budget.unwrap_or_else(|| {
-        sinks
-            .iter()
-            .map(|s| s.holds_back())
-            .filter(|d| !d.is_zero())
-            .min()
-            .map_or(DEFAULT_LAG_BUDGET, |d| d / 2)
-    }))
+    let held_back = sinks
+        .iter()
+        .map(|s| s.holds_back())
+        .filter(|d| !d.is_zero())
+        .min();
+    // Events held back by every output (or a budget of lateness the user set) leave room
+    // for Stage 1 to hold a frame within the budget: the events are still ready before the
+    // outputs send them (the budget is half their shortest delay). Outputs that send as
+    // soon as they can get every interval without that wait.
+    if let Some(budget) = options.lag_budget.or(held_back.map(|d| d / 2)) {
+        stage1.look_ahead_within(budget);
+    }
+    Some(
+        options
+            .lag_budget
+            .unwrap_or_else(|| held_back.map_or(DEFAULT_LAG_BUDGET, |d| d / 2)),
+    )
 }
 
 /// Starts a named thread in `scope`.

@@ -284,6 +284,12 @@ pub trait Stage1: Send {
     /// motion while it steps the current one). Each interval's batch then comes with the next
     /// frame, or at [`Stage1::finish`]; the batches are the same. Live runs never call this.
     fn look_ahead(&mut self) {}
+
+    /// A live run (after [`Stage1::pace`]) whose latency budget leaves room to hold a frame
+    /// back: the tier may do so, as [`Stage1::look_ahead`] does, while consecutive frames are
+    /// at most `most` apart in wall time (each interval's batch then comes up to that much
+    /// later, and its work overlaps the next interval's). Frames further apart are not held.
+    fn look_ahead_within(&mut self, _most: std::time::Duration) {}
 }
 
 /// What a wrapper adds to the tier it wraps (see [`Tapped`]): a look at each batch the tier
@@ -355,6 +361,10 @@ impl<T: Tap> Stage1 for Tapped<T> {
 
     fn look_ahead(&mut self) {
         self.tier.look_ahead()
+    }
+
+    fn look_ahead_within(&mut self, most: std::time::Duration) {
+        self.tier.look_ahead_within(most)
     }
 }
 

@@ -45,6 +45,9 @@ use crate::error::Result;
 use crate::flow::{DenseFlow, FlowBackend, FlowPreset, Pyramid, Region};
 use crate::frame::color::luma_to_gray as gray;
 
+mod blend;
+use blend::{Blend, Packed, BLEND_CHUNK, PACKED_BYTES_PER_PIXEL};
+
 /// How the pixel model sees the light between two frames.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
@@ -88,10 +91,16 @@ const SETTLE_INTERVALS: u32 = 3;
 
 /// Memory the motion model takes per pixel beyond the pixel model's, with `max_subframes`
 /// and `backend`: the sub-frames (2 bytes each), the kept frame's luminance (2), both flows
-/// (16) and their masks (2), the flow lengths (8), and the flow's pyramids and buffers
-/// ([`crate::flow::bytes_per_pixel`]).
+/// (16) and their masks (2), the flow lengths (8), the frames packed for the blend
+/// ([`blend::Packed`]), and the flow's pyramids and buffers ([`crate::flow::bytes_per_pixel`]).
 pub fn bytes_per_pixel(max_subframes: u32, backend: FlowBackend) -> u64 {
-    2 * u64::from(max_subframes.max(1) - 1) + 2 + 16 + 2 + 8 + crate::flow::bytes_per_pixel(backend)
+    2 * u64::from(max_subframes.max(1) - 1)
+        + 2
+        + 16
+        + 2
+        + 8
+        + PACKED_BYTES_PER_PIXEL
+        + crate::flow::bytes_per_pixel(backend)
 }
 
 /// What the motion model did, for the physics tier's record.
@@ -175,11 +184,16 @@ pub struct Subframes {
     f10: Vec<[f32; 2]>,
     ok0: Vec<bool>,
     ok1: Vec<bool>,
-    /// Per tile of the last interval: some pixel moves more than `max_step_px`.
-    moving: Vec<bool>,
+    /// The two frames and their flows' trust, packed for the blend.
+    packed: Packed,
+    /// Per tile of the last interval: the intervals its pixels step through (see
+    /// [`Subframed::steps`]).
+    steps: Vec<u8>,
+    /// Scratch: per tile, the longest trusted flow of a changed pixel.
+    longest: Vec<f32>,
     /// The sub-frames of the last interval: time and linear luminance.
     frames: Vec<(i64, Vec<u16>)>,
-    /// `frames` and `moving` hold the last computation's sub-frames.
+    /// `frames` and `steps` hold the last computation's sub-frames.
     ready: bool,
     stats: MotionStats,
 }
@@ -214,7 +228,9 @@ impl Subframes {
             f10: Vec::new(),
             ok0: Vec::new(),
             ok1: Vec::new(),
-            moving: Vec::new(),
+            packed: Packed::default(),
+            steps: Vec::new(),
+            longest: Vec::new(),
             frames: Vec::new(),
             ready: false,
             stats: MotionStats {
@@ -270,19 +286,33 @@ impl Subframes {
             let tau = (j + 1) as f64 / k as f64;
             *t = t0 + ((t1 - t0) as f64 * tau).round() as i64;
         }
-        // The sub-frames are independent: half of them on a second thread.
-        let (first, second) = frames.split_at_mut((k - 1) / 2);
+        self.packed
+            .set((self.width, self.height), (f0, &self.ok0), (f1, &self.ok1));
+        // The sub-frames are independent: those of about half the work on a second thread.
+        let work: Vec<usize> = (1..k)
+            .map(|j| {
+                let tiles = self.steps.iter().filter(|&&d| covers(d, j, k)).count();
+                tiles * tile * tile
+            })
+            .collect();
+        let total: usize = work.iter().sum();
+        let mut sum = 0;
+        let split = work
+            .iter()
+            .take_while(|&&n| {
+                sum += n;
+                2 * sum <= total
+            })
+            .count();
+        let (first, second) = frames.split_at_mut(split);
         let this = &*self;
         let make = |part: &mut [(i64, Vec<u16>)], offset: usize| {
             for (j, (_, luma)) in part.iter_mut().enumerate() {
-                let tau = (offset + j + 1) as f32 / k as f32;
-                this.synthesize(f0, scale0, f1, tau, tile, luma);
+                this.synthesize(scale0, offset + j + 1, k, tile, luma);
             }
         };
-        let split = first.len();
-        let moving = self.moving.iter().filter(|&&m| m).count() * tile * tile * (k - 1);
         side_by_side(
-            moving >= PARALLEL_PIXELS,
+            total >= PARALLEL_PIXELS,
             || make(first, 0),
             || make(second, split),
         );
@@ -298,7 +328,7 @@ impl Subframes {
         }
         Subframed {
             frames: std::mem::take(&mut self.frames),
-            moving: std::mem::take(&mut self.moving),
+            steps: std::mem::take(&mut self.steps),
         }
     }
 
@@ -306,6 +336,7 @@ impl Subframes {
     pub fn give_back(&mut self, used: Subframed) {
         if self.frames.is_empty() && !self.ready {
             self.frames = used.frames;
+            self.steps = used.steps;
         }
     }
 
@@ -436,9 +467,8 @@ impl Subframes {
         }
         let (mut before, mut after) = (0f64, 0f64);
         let mut lengths = Vec::with_capacity(2 * changed);
-        self.moving.clear();
-        self.moving.resize(tiles_x * h.div_ceil(tile), false);
-        let step = self.max_step_px as f32;
+        self.longest.clear();
+        self.longest.resize(tiles_x * h.div_ceil(tile), 0.0);
         let (g0, g1) = (self.p0.gray(), self.p1.gray());
         for y in 0..h {
             for span in self.region.row_spans(y, w) {
@@ -456,9 +486,8 @@ impl Subframes {
                             let [dx, dy] = flow[i];
                             let length = dx.hypot(dy);
                             lengths.push(length);
-                            if length > step {
-                                self.moving[(y / tile) * tiles_x + (i % w) / tile] = true;
-                            }
+                            let longest = &mut self.longest[(y / tile) * tiles_x + (i % w) / tile];
+                            *longest = longest.max(length);
                         }
                     }
                 }
@@ -471,36 +500,50 @@ impl Subframes {
         }
         let at = (lengths.len() - 1) * 99 / 100;
         let (_, &mut m, _) = lengths.select_nth_unstable_by(at, f32::total_cmp);
-        let k = (m as f64 / self.max_step_px).ceil();
-        (k.max(1.0) as usize)
+        let k = (self.needs(m) as usize)
             .min(self.cap as usize)
-            .min(span_us as usize)
+            .min(span_us as usize);
+        // Each tile as many of the intervals as its own fastest pixel needs, of those that
+        // divide the interval evenly (so that its sub-frames are some of the `k`).
+        self.steps.clear();
+        let divisors: Vec<usize> = (1..=k).filter(|&d| k.is_multiple_of(d)).collect();
+        for &longest in &self.longest {
+            let need = (self.needs(longest) as usize).min(k);
+            let d = divisors.iter().copied().find(|&d| d >= need).unwrap_or(k);
+            self.steps.push(d as u8);
+        }
+        k
     }
 
-    /// The sub-frame at `tau` into `out` (see the module docs, step 5).
-    fn synthesize(
-        &self,
-        f0: &[u16],
-        scale0: f32,
-        f1: &[u16],
-        tau: f32,
-        tile: usize,
-        out: &mut Vec<u16>,
-    ) {
+    /// The intervals a flow of `length` pixels needs (at least 1; large for NaN or infinity,
+    /// which the cap bounds).
+    fn needs(&self, length: f32) -> f64 {
+        let n = (length as f64 / self.max_step_px).ceil();
+        if n >= 1.0 {
+            n.min(4096.0)
+        } else {
+            1.0
+        }
+    }
+
+    /// Sub-frame `j` of `k` intervals (at `tau = j / k`) into `out`, on the tiles it covers
+    /// (see the module docs, step 5).
+    fn synthesize(&self, scale0: f32, j: usize, k: usize, tile: usize, out: &mut Vec<u16>) {
         let (w, h) = (self.width, self.height);
         out.resize(w * h, 0);
         let tiles_x = w.div_ceil(tile);
-        let blend = Blend::new(self, f0, scale0, f1, tau);
+        let blend = Blend::new(self, scale0, j as f32 / k as f32);
         for ty in 0..h.div_ceil(tile) {
-            let moving = &self.moving[ty * tiles_x..(ty + 1) * tiles_x];
-            // Runs of moving tiles, row by row: the frames are read in memory order.
+            let steps = &self.steps[ty * tiles_x..(ty + 1) * tiles_x];
+            let moving = |tx: usize| covers(steps[tx], j, k);
+            // Runs of covered tiles, row by row: the frames are read in memory order.
             let mut tx = 0;
             while tx < tiles_x {
-                if !moving[tx] {
+                if !moving(tx) {
                     tx += 1;
                     continue;
                 }
-                let run = moving[tx..].iter().take_while(|&&m| m).count();
+                let run = (tx..tiles_x).take_while(|&t| moving(t)).count();
                 let (x0, x1) = (tx * tile, ((tx + run) * tile).min(w));
                 for y in ty * tile..((ty + 1) * tile).min(h) {
                     for x in (x0..x1).step_by(BLEND_CHUNK) {
@@ -514,168 +557,23 @@ impl Subframes {
     }
 }
 
-/// Pixels of a sub-frame row blended together.
-const BLEND_CHUNK: usize = 64;
-
-/// One sub-frame's blend of its two neighbours (see the module docs, step 5), a row's pixels
-/// at a time in three passes, so the arithmetic runs on vectors: where each pixel's flows land
-/// (the sample positions, their weights and nearest pixels), the frames' values there, and the
-/// blend. Each pixel's arithmetic is the same as alone, in the same order.
-struct Blend<'a> {
-    f0: &'a [u16],
-    f1: &'a [u16],
-    f01: &'a [[f32; 2]],
-    f10: &'a [[f32; 2]],
-    ok0: &'a [bool],
-    ok1: &'a [bool],
-    w: usize,
-    h: usize,
-    scale0: f32,
-    tau: f32,
-    s: f32,
-    /// The flows' factors in `F(tau->0) = -(1-tau) tau F01 + tau^2 F10` and `F(tau->1) =
-    /// (1-tau)^2 F01 - tau (1-tau) F10`.
-    to0: (f32, f32),
-    to1: (f32, f32),
-}
-
-/// Where a chunk of pixels sample a frame, one array per quantity.
-struct Taps {
-    /// The bilinear sample's top-left corner and its weights (as [`sample`] takes them).
-    xi: [u32; BLEND_CHUNK],
-    yi: [u32; BLEND_CHUNK],
-    fx: [f32; BLEND_CHUNK],
-    fy: [f32; BLEND_CHUNK],
-    /// The pixel nearest the position (as [`nearest`] finds it).
-    nx: [u32; BLEND_CHUNK],
-    ny: [u32; BLEND_CHUNK],
-}
-
-impl Taps {
-    fn new() -> Self {
-        Taps {
-            xi: [0; BLEND_CHUNK],
-            yi: [0; BLEND_CHUNK],
-            fx: [0.0; BLEND_CHUNK],
-            fy: [0.0; BLEND_CHUNK],
-            nx: [0; BLEND_CHUNK],
-            ny: [0; BLEND_CHUNK],
-        }
-    }
-
-    /// The taps of position `(x, y)` for pixel `j`. In 32 bits so that they run on vectors;
-    /// the same values as [`sample`]'s and [`nearest`]'s: clamped into the frame first (a
-    /// frame is at most 8192 wide, exact in `f32`), and NaN and negatives to 0 as a
-    /// saturating cast takes them.
-    #[inline(always)]
-    fn set(&mut self, j: usize, (w, h): (f32, f32), x: f32, y: f32) {
-        self.nx[j] = (x + 0.5).max(0.0).min(w) as u32;
-        self.ny[j] = (y + 0.5).max(0.0).min(h) as u32;
-        let x = x.clamp(0.0, w);
-        let y = y.clamp(0.0, h);
-        let (xi, yi) = (x as u32, y as u32);
-        self.fx[j] = x - xi as f32;
-        self.fy[j] = y - yi as f32;
-        (self.xi[j], self.yi[j]) = (xi, yi);
-    }
-
-    /// The four corners of pixel `j`'s bilinear sample of `img` (`w x h`): top left, top
-    /// right, bottom left, bottom right (the border repeated).
-    #[inline(always)]
-    fn corners(&self, j: usize, img: &[u16], w: usize, h: usize) -> [f32; 4] {
-        let (xi, yi) = (self.xi[j] as usize, self.yi[j] as usize);
-        let (xj, yj) = ((xi + 1).min(w - 1), (yi + 1).min(h - 1));
-        let at = |x: usize, y: usize| -> f32 { img[y * w + x].into() };
-        [at(xi, yi), at(xj, yi), at(xi, yj), at(xj, yj)]
-    }
-}
-
-/// Bilinear interpolation between `corners` (as [`Taps::corners`] orders them).
-#[inline(always)]
-fn bilinear(c: [f32; 4], fx: f32, fy: f32) -> f32 {
-    let top = c[0] * (1.0 - fx) + c[1] * fx;
-    let bottom = c[2] * (1.0 - fx) + c[3] * fx;
-    top * (1.0 - fy) + bottom * fy
-}
-
-impl<'a> Blend<'a> {
-    fn new(m: &'a Subframes, f0: &'a [u16], scale0: f32, f1: &'a [u16], tau: f32) -> Self {
-        let s = 1.0 - tau;
-        Blend {
-            f0,
-            f1,
-            f01: &m.f01,
-            f10: &m.f10,
-            ok0: &m.ok0,
-            ok1: &m.ok1,
-            w: m.width,
-            h: m.height,
-            scale0,
-            tau,
-            s,
-            to0: (-s * tau, tau * tau),
-            to1: (s * s, tau * s),
-        }
-    }
-
-    /// Pixels `xs` of row `y` (at most [`BLEND_CHUNK`]) into `out`.
-    fn row(&self, y: usize, xs: std::ops::Range<usize>, out: &mut [u16]) {
-        let (w, h) = (self.w, self.h);
-        let n = xs.len().min(BLEND_CHUNK).min(out.len());
-        let start = y * w + xs.start;
-        let (f01, f10) = (&self.f01[start..start + n], &self.f10[start..start + n]);
-        let last = ((w - 1) as f32, (h - 1) as f32);
-        let (mut taps0, mut taps1) = (Taps::new(), Taps::new());
-        for j in 0..n {
-            let [ax, ay] = f01[j];
-            let [bx, by] = f10[j];
-            let to0 = (
-                self.to0.0 * ax + self.to0.1 * bx,
-                self.to0.0 * ay + self.to0.1 * by,
-            );
-            let to1 = (
-                self.to1.0 * ax - self.to1.1 * bx,
-                self.to1.0 * ay - self.to1.1 * by,
-            );
-            let (x, yf) = ((xs.start + j) as f32, y as f32);
-            taps0.set(j, last, x + to0.0, yf + to0.1);
-            taps1.set(j, last, x + to1.0, yf + to1.1);
-        }
-        let mut c0 = [[0.0f32; 4]; BLEND_CHUNK];
-        let mut c1 = [[0.0f32; 4]; BLEND_CHUNK];
-        let (mut w0, mut w1) = ([0.0f32; BLEND_CHUNK], [0.0f32; BLEND_CHUNK]);
-        for j in 0..n {
-            c0[j] = taps0.corners(j, self.f0, w, h);
-            c1[j] = taps1.corners(j, self.f1, w, h);
-            let seen0 = self.ok0[taps0.ny[j] as usize * w + taps0.nx[j] as usize];
-            let seen1 = self.ok1[taps1.ny[j] as usize * w + taps1.nx[j] as usize];
-            (w0[j], w1[j]) = (
-                if seen0 { self.s } else { 0.0 },
-                if seen1 { self.tau } else { 0.0 },
-            );
-        }
-        let (s, tau) = (self.s, self.tau);
-        for j in 0..n {
-            let v0 = bilinear(c0[j], taps0.fx[j], taps0.fy[j]) * self.scale0;
-            let v1 = bilinear(c1[j], taps1.fx[j], taps1.fy[j]);
-            // Each neighbour where its flow is trusted; where neither is, the plain blend.
-            let neither = w0[j] + w1[j] <= 0.0;
-            let (a, b) = if neither { (s, tau) } else { (w0[j], w1[j]) };
-            let v = (a * v0 + b * v1) / (a + b);
-            // Non-negative: `+ 0.5` and truncation round it (no libm call in the loop).
-            out[j] = (v + 0.5).clamp(0.0, 65535.0) as u16;
-        }
-    }
+/// Sub-frame `j` (of `1..k`) of an interval cut into `k` covers a tile that steps through
+/// `steps` of them (see [`Subframed::steps`]).
+fn covers(steps: u8, j: usize, k: usize) -> bool {
+    let steps = usize::from(steps);
+    steps > 1 && j.is_multiple_of(k / steps)
 }
 
 /// Sub-frames moved out of [`Subframes`] (see [`Subframes::take`]): their times and linear
 /// luminance, in time order, and the tiles they cover. Empty where the interval needs none.
 #[derive(Debug, Default)]
 pub struct Subframed {
-    /// Time and luminance of each sub-frame.
+    /// Time and luminance of each sub-frame: `k - 1` of them, at `j / k` of the interval.
     pub frames: Vec<(i64, Vec<u16>)>,
-    /// Per tile: the sub-frames cover it.
-    pub moving: Vec<bool>,
+    /// Per tile (row-major): the intervals `d` its pixels step through, a divisor of `k`:
+    /// every `k / d`-th sub-frame and then the frame (1: the whole interval at once, no
+    /// sub-frame; their values there are not set).
+    pub steps: Vec<u8>,
 }
 
 /// Keeps a live run's sub-frame cap where Stage 1 keeps up with the frames: the cap halves
@@ -1046,6 +944,51 @@ mod tests {
         assert_eq!(stats.tiles_active, 0);
     }
 
+    /// Each tile steps through as many of the interval's sub-frames as its own fastest pixel
+    /// needs: a bar moving 8 px a frame above one moving 2 px, the interval cut into about 8
+    /// for the fast bar, the slow bar's tiles through a few evenly spaced sub-frames, the fast
+    /// bar's through all, the background's through none.
+    #[test]
+    fn each_tile_steps_through_the_subframes_it_needs() {
+        let scene = |t: i64, x: u16, y: u16| {
+            let (x, y, t) = (x as f64, y as f64, t as f64 * 1e-6);
+            let speed = if y < 48.0 { SPEED } else { SPEED / 4.0 };
+            let u = x - 16.0 - speed * t;
+            let tex = 0.5 + 0.3 * (u * 0.4).sin() * (y * 0.3).cos();
+            if (0.0..32.0).contains(&u) {
+                tex
+            } else {
+                DARK
+            }
+        };
+        let mut src = SceneSource::new("bars", W, H, FPS, 3, Box::new(scene));
+        let frames: Vec<Frame> = std::iter::from_fn(|| src.next_frame().unwrap()).collect();
+        let mut sub = Subframes::new(DIS_FAST, 1.0, 16, W, H).unwrap();
+        let (f0, f1) = (&frames[1], &frames[2]);
+        let k = sub.compute(&f0.luma, 1.0, &f1.luma, f0.t, f1.t, 16);
+        // The fast bar's 8 px, give or take the flow's error at its edges.
+        assert!((8..=12).contains(&k), "{k} intervals");
+        let used = sub.take();
+        assert_eq!(used.frames.len(), k - 1);
+        let tiles_x = (W as usize).div_ceil(16);
+        let (top, bottom) = used.steps.split_at(3 * tiles_x);
+        assert_eq!(top.iter().max(), Some(&(k as u8)), "{top:?}");
+        // The slow bar's 2 px (3 at most with the flow's error), rounded up to a divisor, on
+        // the tiles a tile row away from the fast bar (the patches on the boundary see both).
+        let slow = (2..k).find(|&d| d >= 3 && k.is_multiple_of(d)).unwrap_or(k);
+        let inner = &bottom[tiles_x..];
+        let most = *inner.iter().max().unwrap_or(&0) as usize;
+        assert!((2..=slow).contains(&most) && most < k, "{k}: {bottom:?}");
+        assert!(used.steps.contains(&1), "{:?}", used.steps);
+        // A tile stepping through `d` intervals is covered by `d - 1` evenly spaced sub-frames.
+        for (t, &d) in used.steps.iter().enumerate() {
+            let covered: Vec<usize> = (1..k).filter(|&j| covers(d, j, k)).collect();
+            let every = k / d as usize;
+            let want: Vec<usize> = (1..d as usize).map(|m| m * every).collect();
+            assert_eq!(covered, want, "tile {t}, {d} of {k}");
+        }
+    }
+
     /// The blend of a sub-frame, a row's pixels at a time on vectors, is the per-pixel
     /// definition bit for bit: bilinear samples of both neighbours along the flows (positions
     /// inside, on the border and far outside the frame), each trusted where the nearest
@@ -1070,7 +1013,8 @@ mod tests {
         let f0: Vec<u16> = (0..w * h).map(|_| rng.gen()).collect();
         let f1: Vec<u16> = (0..w * h).map(|_| rng.gen()).collect();
         for (tau, scale0) in [(0.25f32, 1.0f32), (0.5, 0.8), (0.875, 1.3)] {
-            let blend = Blend::new(&m, &f0, scale0, &f1, tau);
+            m.packed.set((w, h), (&f0, &m.ok0), (&f1, &m.ok1));
+            let blend = Blend::new(&m, scale0, tau);
             let mut out = vec![0u16; w];
             for y in 0..h {
                 blend.row(y, 0..w, &mut out);

@@ -217,4 +217,43 @@ mod tests {
             assert_eq!(plain, ahead, "{output:?}");
         }
     }
+
+    /// A live tier that may hold a frame back within 50 ms holds it while frames come 33 ms
+    /// apart (each batch with the next frame) and hands it on at once once they come 200 ms
+    /// apart; every interval's batch comes, in order, the last one held at `finish`.
+    #[test]
+    fn a_live_tier_holds_a_frame_only_within_its_budget() {
+        use crate::stage1::{Stage1Batch, Stage1Config};
+        let mut frames = frames();
+        let mut t = 0;
+        for (k, f) in frames.iter_mut().enumerate() {
+            t += if k < 8 { 33_333 } else { 200_000 };
+            f.t = t;
+        }
+        let mut tier =
+            crate::stage1::build(&Stage1Config::default(), 10, (120, 72), Default::default())
+                .unwrap();
+        tier.pace(1.0);
+        tier.look_ahead_within(std::time::Duration::from_millis(50));
+        let mut out = Vec::new();
+        for (k, f) in frames.iter().enumerate() {
+            tier.push(f, &mut out).unwrap();
+            // Held while the frames are close: the interval of frame k - 1 comes with frame k;
+            // from frame 8 on (200 ms after the last) each interval comes with its own frame.
+            let closed = if k < 8 { k.saturating_sub(1) } else { k };
+            assert_eq!(out.len(), closed, "frame {k}");
+        }
+        tier.finish(&mut out).unwrap();
+        let ends: Vec<i64> = out.iter().map(Stage1Batch::end).collect();
+        let want: Vec<i64> = frames[1..].iter().map(|f| f.t).collect();
+        assert_eq!(ends, want);
+        let events: usize = out
+            .iter()
+            .map(|b| match b {
+                Stage1Batch::Events { events, .. } => events.len(),
+                Stage1Batch::Voxels(..) => 0,
+            })
+            .sum();
+        assert!(events > 1_000, "{events} events");
+    }
 }

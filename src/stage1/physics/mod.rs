@@ -129,6 +129,9 @@ pub struct PhysicsSim {
     look_ahead: bool,
     /// The worker that finds it, once started.
     ahead: Option<ahead::Ahead>,
+    /// The wall time of the last step and its interval, for the motion model's cap keeper
+    /// while the worker had it.
+    unspent: Option<(f64, i64)>,
     /// Scratch: which tiles of the band being advanced are active.
     band: Vec<bool>,
     /// Scratch: the slow pixels of the band being advanced.
@@ -299,6 +302,7 @@ impl PhysicsSim {
             spare: None,
             look_ahead: false,
             ahead: None,
+            unspent: None,
             slow: Vec::new(),
             band: Vec::new(),
             lanes: Vec::new(),
@@ -348,8 +352,9 @@ impl PhysicsSim {
         }
     }
 
-    /// An offline run: [`PhysicsSim::step_next`] finds the next interval's motion on a thread
-    /// of its own while it steps the current one (see [`ahead`]). Not for a paced run.
+    /// [`PhysicsSim::step_next`] finds the next interval's motion on a thread of its own
+    /// while it steps the current one (see [`ahead`]): offline, or live after
+    /// [`PhysicsSim::pace`] (the sub-frame cap then follows the time the steps take here).
     pub fn look_ahead(&mut self) {
         self.look_ahead = self.motion.is_some();
     }
@@ -445,15 +450,25 @@ impl PhysicsSim {
             let used = motion.take();
             self.send_ahead(motion, frame, next, g);
             if !used.frames.is_empty() {
-                // Through the sub-frames where the scene moves, at once elsewhere.
-                let moving = &used.moving;
-                let mut t = t0;
-                for (t_sub, luma) in &used.frames {
-                    self.advance(luma, t, *t_sub, Some((moving, true)), out);
-                    t = *t_sub;
+                // Through the sub-frames where the scene moves, each tile through as many as
+                // it needs, at once elsewhere.
+                let (steps, k) = (&used.steps, used.frames.len() + 1);
+                let mut present = [false; 256];
+                steps.iter().for_each(|&d| present[usize::from(d)] = true);
+                for d in (2..=u8::MAX).filter(|&d| present[usize::from(d)]) {
+                    let mut t = t0;
+                    for (t_sub, luma) in used
+                        .frames
+                        .iter()
+                        .skip(k / d as usize - 1)
+                        .step_by(k / d as usize)
+                    {
+                        self.advance(luma, t, *t_sub, Some((steps, d)), out);
+                        t = *t_sub;
+                    }
+                    self.advance(&frame.luma, t, frame.t, Some((steps, d)), out);
                 }
-                self.advance(&frame.luma, t, frame.t, Some((moving, true)), out);
-                self.advance(&frame.luma, t0, frame.t, Some((moving, false)), out);
+                self.advance(&frame.luma, t0, frame.t, Some((steps, 1)), out);
                 stepped = true;
             }
             self.spare = Some(used);
@@ -466,8 +481,11 @@ impl PhysicsSim {
         self.prev_t = Some(frame.t);
         self.stats.frames += 1;
         sort_events(&mut out[start..]);
-        if let Some(motion) = &mut self.motion {
-            motion.spent(started.elapsed().as_secs_f64(), frame.t - t0);
+        let spent = (started.elapsed().as_secs_f64(), frame.t - t0);
+        match &mut self.motion {
+            Some(motion) => motion.spent(spent.0, spent.1),
+            // With the worker: told when it comes back.
+            None => self.unspent = Some(spent),
         }
         Ok(())
     }
@@ -477,6 +495,7 @@ impl PhysicsSim {
     /// here. `None` without a motion model.
     fn motion_for(&mut self, frame: &Frame, scale0: f32, t0: i64) -> Result<Option<Subframes>> {
         let tile = self.cfg.tile as usize;
+        let unspent = self.unspent.take();
         let mut motion = match self.ahead.as_mut().map(|a| a.wait()).transpose()?.flatten() {
             Some(done) => {
                 let job = done.job;
@@ -486,10 +505,15 @@ impl PhysicsSim {
                     && job.f0 == self.prev_luma
                     && job.f1 == frame.luma;
                 let mut motion = job.motion;
+                if !same {
+                    motion.restore_stats(done.before);
+                }
+                if let Some((seconds, span)) = unspent {
+                    motion.spent(seconds, span);
+                }
                 if same {
                     return Ok(Some(motion));
                 }
-                motion.restore_stats(done.before);
                 motion
             }
             None => match self.motion.take() {
@@ -564,7 +588,7 @@ impl PhysicsSim {
         luma: &[u16],
         t0: i64,
         t1: i64,
-        only: Option<(&[bool], bool)>,
+        only: Option<(&[u8], u8)>,
         out: &mut Vec<Event>,
     ) {
         let filter = self.filter_table((t1 - t0) as f64);
@@ -869,8 +893,12 @@ pub struct PhysicsStage1 {
     earlier: PhysicsStats,
     /// A live run's speed (see [`super::Stage1::pace`]), kept across restarts.
     speed: Option<f64>,
-    /// An offline run with motion: one frame is held back (see [`super::Stage1::look_ahead`]).
+    /// An offline run with motion, or a live one within its budget: one frame is held back
+    /// (see [`super::Stage1::look_ahead`]).
     look_ahead: bool,
+    /// A live run's most frame time between a held frame and the next (see
+    /// [`super::Stage1::look_ahead_within`]), us; frames further apart are not held.
+    hold_within: Option<i64>,
     /// The frame held back.
     held: Option<Frame>,
 }
@@ -902,12 +930,20 @@ impl PhysicsStage1 {
             earlier: PhysicsStats::default(),
             speed: None,
             look_ahead: false,
+            hold_within: None,
             held: None,
         })
     }
 }
 
 impl PhysicsStage1 {
+    /// Holds a frame back while the next comes at most `most` us of frame time later.
+    fn hold_within(&mut self, most: i64) {
+        self.sim.look_ahead();
+        self.look_ahead = self.sim.looks_ahead();
+        self.hold_within = Some(most);
+    }
+
     /// Steps `frame` (with the frame after it, where known) and appends its interval's batch.
     fn process(
         &mut self,
@@ -950,11 +986,19 @@ impl super::Stage1 for PhysicsStage1 {
             return self.process(frame, None, out);
         }
         // One frame held back: its interval is stepped once the next frame is known.
-        let held = self.held.replace(frame.clone());
-        match held {
-            Some(held) => self.process(&held, Some(frame), out),
-            None => Ok(()),
+        if let Some(held) = self.held.take() {
+            self.process(&held, Some(frame), out)?;
         }
+        // A live run does not hold a frame that far from the last: it goes now (its motion
+        // found while the last one was stepped, where that one was held).
+        let far = |most: i64, last: i64| frame.t.saturating_sub(last) > most;
+        if let (Some(most), Some(last)) = (self.hold_within, self.previous) {
+            if far(most, last) {
+                return self.process(frame, None, out);
+            }
+        }
+        self.held = Some(frame.clone());
+        Ok(())
     }
 
     fn finish(&mut self, out: &mut Vec<super::Stage1Batch>) -> Result<()> {
@@ -970,14 +1014,16 @@ impl super::Stage1 for PhysicsStage1 {
     /// comes from the same seed.
     fn restart(&mut self) -> Result<()> {
         let mut earlier = self.counters();
-        let (speed, look_ahead) = (self.speed, self.look_ahead);
+        let (speed, look_ahead, within) = (self.speed, self.look_ahead, self.hold_within);
         *self = PhysicsStage1::new(&self.config, self.bins, self.size)?;
         std::mem::swap(&mut self.earlier, &mut earlier);
         if let Some(speed) = speed {
             super::Stage1::pace(self, speed);
         }
-        if look_ahead {
-            super::Stage1::look_ahead(self);
+        match within {
+            Some(most) if look_ahead => self.hold_within(most),
+            _ if look_ahead => super::Stage1::look_ahead(self),
+            _ => {}
         }
         Ok(())
     }
@@ -999,8 +1045,16 @@ impl super::Stage1 for PhysicsStage1 {
 
     fn pace(&mut self, speed: f64) {
         self.speed = Some(speed);
-        self.look_ahead = false;
+        (self.look_ahead, self.hold_within) = (false, None);
         self.sim.pace(speed);
+    }
+
+    fn look_ahead_within(&mut self, most: std::time::Duration) {
+        if let Some(speed) = self.speed {
+            // In frame time: a replay at twice real time has frames twice as far apart.
+            let us = most.as_secs_f64() * 1e6 * speed;
+            self.hold_within(if us.is_finite() { us as i64 } else { 0 });
+        }
     }
 
     fn look_ahead(&mut self) {
