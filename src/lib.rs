@@ -28,6 +28,7 @@ pub mod limits;
 pub(crate) mod listen;
 pub mod metrics;
 pub mod model;
+pub(crate) mod parallel;
 pub(crate) mod pipeline;
 pub(crate) mod process;
 pub(crate) mod realtime;

@@ -32,10 +32,14 @@
 //!    blended with weights `1 - tau` and `tau`, each neighbour's only where its flow is
 //!    trusted (an occluded pixel is seen from the side where it is visible; where neither is,
 //!    the plain blend).
-//! 6. **Only where it moves.** Sub-frames cover the tiles where some changed pixel moves more
-//!    than `max_step_px`; the pixel model steps through them there, and across the whole
-//!    interval at once everywhere else, as with linear interpolation (where its tile gate
-//!    skips what did not change).
+//! 6. **Each tile as many as it needs.** A tile whose fastest trusted pixel moves `l` pixels
+//!    steps through `d` of the `K` intervals, `d` the smallest divisor of `K` at least
+//!    `ceil(l / max_step_px)`: every `K / d`-th sub-frame, so its sub-frames are some of the
+//!    `K` (blended only on the tiles that use them; [`Subframed::steps`]). A tile that moves
+//!    `max_step_px` or less (`d = 1`) steps across the whole interval at once, as with linear
+//!    interpolation, where the pixel model's tile gate skips what did not change. The frames
+//!    are blended from a packed copy ([`blend`]: each pixel's value and trust in one word, the
+//!    border repeated), a row's pixels at a time.
 
 use std::time::Instant;
 
@@ -44,6 +48,7 @@ use serde::{Deserialize, Serialize};
 use crate::error::Result;
 use crate::flow::{DenseFlow, FlowBackend, FlowPreset, Pyramid, Region};
 use crate::frame::color::luma_to_gray as gray;
+use crate::parallel::side_by_side;
 
 mod blend;
 use blend::{Blend, Packed, BLEND_CHUNK, PACKED_BYTES_PER_PIXEL};
@@ -296,14 +301,7 @@ impl Subframes {
             })
             .collect();
         let total: usize = work.iter().sum();
-        let mut sum = 0;
-        let split = work
-            .iter()
-            .take_while(|&&n| {
-                sum += n;
-                2 * sum <= total
-            })
-            .count();
+        let split = crate::parallel::halfway(&work);
         let (first, second) = frames.split_at_mut(split);
         let this = &*self;
         let make = |part: &mut [(i64, Vec<u16>)], offset: usize| {
@@ -312,6 +310,7 @@ impl Subframes {
             }
         };
         side_by_side(
+            "v2ce-flow",
             total >= PARALLEL_PIXELS,
             || make(first, 0),
             || make(second, split),
@@ -345,13 +344,14 @@ impl Subframes {
         self.stats = stats;
     }
 
-    /// In a live run, the wall time the last interval (`interval_us` of frame time) took;
-    /// the cap follows it (see [`Governor`]).
-    pub fn spent(&mut self, seconds: f64, interval_us: i64) {
+    /// In a live run, the wall time the last interval (`interval_us` of frame time) took,
+    /// and whether it was stepped through sub-frames; the cap follows it (see [`Governor`]).
+    pub fn spent(&mut self, seconds: f64, interval_us: i64, subframed: bool) {
         let Some(governor) = &mut self.live else {
             return;
         };
-        if let Some(cap) = governor.spent(seconds, interval_us, self.cap, self.max_subframes) {
+        let (cap, most) = (self.cap, self.max_subframes);
+        if let Some(cap) = governor.spent(seconds, interval_us, subframed, cap, most) {
             if cap < self.cap {
                 self.stats.cap_lowered += 1;
             }
@@ -432,6 +432,7 @@ impl Subframes {
         let (p0, p1) = (&*p0, &*p1);
         let parallel = region_pixels >= PARALLEL_PIXELS;
         let (forward, backward) = side_by_side(
+            "v2ce-flow",
             parallel,
             || flow.compute_on(p0, p1, Some(region), f01),
             || back.compute_on(p1, p0, Some(region), f10),
@@ -460,6 +461,7 @@ impl Subframes {
             } = self;
             let (f01, f10, region) = (&*f01, &*f10, &*region);
             side_by_side(
+                "v2ce-flow",
                 parallel,
                 || consistent(f01, f10, w, h, region, ok0),
                 || consistent(f10, f01, w, h, region, ok1),
@@ -577,14 +579,18 @@ pub struct Subframed {
 }
 
 /// Keeps a live run's sub-frame cap where Stage 1 keeps up with the frames: the cap halves
-/// when the time per interval, smoothed over a few intervals, passes `LIVE_SHARE` of the
-/// interval's wall time, and rises by one after `CALM_INTERVALS` intervals under half of that.
-/// A raise taken back soon after doubles the wait before the next (a machine that cannot
-/// afford the flow at all settles on linear interpolation instead of trying every second).
+/// when the time per interval stepped through sub-frames, smoothed over a few of them, passes
+/// `LIVE_SHARE` of the interval's wall time, and rises by one after `CALM_INTERVALS` intervals
+/// under half of that. An interval stepped without sub-frames (nothing moved, or a scene cut
+/// or a change of light that fell back to linear) costs the same at any cap: it does not
+/// lower the cap, and counts as calm when it took under half the budget. A raise taken back
+/// soon after doubles the wait before the next (a machine that cannot afford the flow at all
+/// settles on linear interpolation instead of trying every second).
 #[derive(Debug, Clone)]
 struct Governor {
     speed: f64,
-    /// Smoothed seconds per interval since the last change of cap, and how many intervals.
+    /// Smoothed seconds per interval with sub-frames since the last change of cap, and how
+    /// many intervals.
     smoothed: f64,
     samples: u32,
     calm: u32,
@@ -605,16 +611,26 @@ impl Governor {
         }
     }
 
-    /// The new cap, if it changes, after an interval of `interval_us` took `seconds` at `cap`.
-    fn spent(&mut self, seconds: f64, interval_us: i64, cap: u32, most: u32) -> Option<u32> {
+    /// The new cap, if it changes, after an interval of `interval_us` took `seconds` at `cap`
+    /// (`subframed`: through sub-frames).
+    fn spent(
+        &mut self,
+        seconds: f64,
+        interval_us: i64,
+        subframed: bool,
+        cap: u32,
+        most: u32,
+    ) -> Option<u32> {
         let frame = interval_us as f64 * 1e-6 / self.speed;
         let budget = LIVE_SHARE * frame;
-        self.smoothed = if self.samples == 0 {
-            seconds
-        } else {
-            0.7 * self.smoothed + 0.3 * seconds
-        };
-        self.samples += 1;
+        if subframed {
+            self.smoothed = if self.samples == 0 {
+                seconds
+            } else {
+                0.7 * self.smoothed + 0.3 * seconds
+            };
+            self.samples += 1;
+        }
         if let Some(n) = &mut self.since_raise {
             *n += 1;
             if *n > 2 * self.wait {
@@ -639,7 +655,12 @@ impl Governor {
             (self.samples, self.calm) = (0, 0);
             return Some(lowered);
         }
-        if self.smoothed < budget / 2.0 && cap < most {
+        let calm = if subframed {
+            self.smoothed < budget / 2.0
+        } else {
+            seconds < budget / 2.0 && (self.samples == 0 || self.smoothed < budget / 2.0)
+        };
+        if calm && cap < most {
             self.calm += 1;
             if self.calm >= self.wait {
                 tracing::info!(
@@ -659,33 +680,6 @@ impl Governor {
 
 /// Work on fewer pixels than this runs on one thread: starting a second costs more.
 const PARALLEL_PIXELS: usize = 32 * 1024;
-
-/// Runs `a` here and, when `parallel`, `b` on a second thread at the same time (`b` here too,
-/// after `a`, where not parallel or no thread can be had), and returns both results.
-fn side_by_side<A, B: Send>(
-    parallel: bool,
-    a: impl FnOnce() -> A,
-    b: impl FnOnce() -> B + Send,
-) -> (A, B) {
-    if !parallel {
-        return (a(), b());
-    }
-    let b = std::sync::Mutex::new(Some(b));
-    let run_b = || b.lock().ok().and_then(|mut f| f.take()).map(|f| f());
-    std::thread::scope(|scope| {
-        let handle = std::thread::Builder::new()
-            .name("v2ce-flow".into())
-            .spawn_scoped(scope, run_b);
-        let ra = a();
-        let rb = match handle {
-            Ok(h) => h.join().unwrap_or_else(|p| std::panic::resume_unwind(p)),
-            Err(_) => None,
-        };
-        // Not run on the thread (none was had): run here.
-        let rb = rb.or_else(run_b).expect("the second job runs once");
-        (ra, rb)
-    })
-}
 
 /// Forward-backward consistency of `forward` into `ok`: a pixel's vector and the `backward`
 /// vector where it lands cancel to within `0.5 px + 10%` (squared: `|f + b|^2 < 0.01 (|f|^2 +
@@ -1050,6 +1044,30 @@ mod tests {
         }
     }
 
+    /// An interval stepped without sub-frames (a scene cut that fell back to linear, nothing
+    /// moving) costs the same at any cap: however long it takes, it does not lower the cap,
+    /// and a cheap one counts as calm.
+    #[test]
+    fn intervals_without_subframes_do_not_lower_the_cap() {
+        let mut sub = Subframes::new(DIS_FAST, 1.0, 8, W, H).unwrap();
+        sub.pace(1.0);
+        for _ in 0..10 * SETTLE_INTERVALS {
+            sub.spent(0.050, 33_333, false);
+        }
+        assert_eq!(sub.stats().cap, 8);
+        // The same time through sub-frames lowers it.
+        for _ in 0..SETTLE_INTERVALS {
+            sub.spent(0.050, 33_333, true);
+        }
+        assert_eq!(sub.stats().cap, 4);
+        for _ in 0..CALM_INTERVALS - 1 {
+            sub.spent(0.001, 33_333, false);
+        }
+        assert_eq!(sub.stats().cap, 4);
+        sub.spent(0.001, 33_333, false);
+        assert_eq!(sub.stats().cap, 5);
+    }
+
     /// A live run that cannot keep up halves the cap, down to linear interpolation, and says
     /// so in its counters; with time to spare it raises the cap again, one step at a time, and
     /// a raise taken back doubles the wait before the next.
@@ -1057,27 +1075,27 @@ mod tests {
     fn a_live_run_lowers_the_cap_to_keep_up() {
         let mut sub = Subframes::new(DIS_FAST, 1.0, 8, W, H).unwrap();
         // Offline: no budget.
-        sub.spent(1.0, 33_333);
+        sub.spent(1.0, 33_333, true);
         assert_eq!(sub.stats().cap, 8);
         sub.pace(1.0);
         // One slow interval is not enough; a run of them is.
         let mut caps = Vec::new();
         for _ in 0..3 * SETTLE_INTERVALS {
-            sub.spent(0.030, 33_333);
+            sub.spent(0.030, 33_333, true);
             caps.push(sub.stats().cap);
         }
         assert_eq!(caps, [8, 8, 4, 4, 4, 2, 2, 2, 1]);
         assert_eq!(sub.stats().cap_lowered, 3);
         let calm = |sub: &mut Subframes, n: u32| {
             for _ in 0..n {
-                sub.spent(0.001, 33_333);
+                sub.spent(0.001, 33_333, true);
             }
         };
         calm(&mut sub, CALM_INTERVALS);
         assert_eq!(sub.stats().cap, 2);
         // Too slow at 2: back to 1, and the next raise waits twice as long.
         for _ in 0..SETTLE_INTERVALS {
-            sub.spent(0.030, 33_333);
+            sub.spent(0.030, 33_333, true);
         }
         assert_eq!(sub.stats().cap, 1);
         calm(&mut sub, CALM_INTERVALS);

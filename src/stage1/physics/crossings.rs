@@ -1,5 +1,5 @@
 //! The slow path of the pixel model: sub-steps with timed crossings, for the pixels of a tile
-//! whose response may reach a threshold in the interval (see [`PhysicsSim::row`]).
+//! whose response may reach a threshold in the interval (see [`Band::row`]).
 //!
 //! A tile's slow pixels are ordered by their number of sub-steps and stepped [`LANES`] at a
 //! time, side by side, one array per quantity, so the step's arithmetic runs on vectors and a
@@ -9,7 +9,8 @@
 //! frame's events are sorted afterwards, so the events depend neither on the grouping nor on
 //! the order.
 
-use super::{FilterRow, PhysicsSim, SlowPixel, FLICKER_MAX_SUBSTEPS};
+use super::band::Band;
+use super::{FilterRow, SlowPixel, FLICKER_MAX_SUBSTEPS};
 use crate::event::Event;
 use crate::rounding::{ceil_to_u32, round_to_i64};
 
@@ -210,7 +211,7 @@ impl Group {
     }
 }
 
-impl PhysicsSim {
+impl Band<'_> {
     /// Steps `pixels` (a tile's slow pixels, light at `t1`) from `t0` to `t1` in sub-steps,
     /// appending their timed threshold crossings to `out` (unsorted).
     pub(super) fn crossings(
@@ -221,7 +222,7 @@ impl PhysicsSim {
         filter: &[FilterRow],
         out: &mut Vec<Event>,
     ) {
-        let mut lanes = std::mem::take(&mut self.lanes);
+        let mut lanes = std::mem::take(&mut self.scratch.lanes);
         lanes.clear();
         lanes.extend(pixels.iter().map(|p| Lane {
             x: p.x,
@@ -239,15 +240,15 @@ impl PhysicsSim {
                 self.last_event[i] = lane.last;
             }
         }
-        self.lanes = lanes;
+        self.scratch.lanes = lanes;
     }
 
     /// Pixel `i`'s state at `t0` and its constants for the interval to `t1`, where its light
     /// is `v` (its column and row left to the caller).
     fn lane(&self, i: usize, v: u16, t0: i64, t1: i64, filter: &[FilterRow]) -> Lane {
-        let l1 = self.log_lut[v as usize] as f64;
+        let l1 = self.shared.log_lut[v as usize] as f64;
         let l0 = self.l_in[i] as f64;
-        let row = filter[self.filter_rows[v as usize] as usize];
+        let row = filter[self.shared.filter_rows[v as usize] as usize];
         let tau = row.tau as f64;
         let amp = row.amp as f64;
         let y = self.l_p[i] as f64;
@@ -260,14 +261,18 @@ impl PhysicsSim {
             // `dt / tau` is finite and positive here (`tau > 0`, `dt >= 1`).
             steps = steps.max(ceil_to_u32(dt / tau).min(8));
         }
-        let mut most = self.cfg.max_substeps;
+        let mut most = self.shared.cfg.max_substeps;
         let (mut phase, mut omega) = (0.0, 0.0);
         if amp > 0.0 {
             // Eight steps per flicker cycle, so each cycle's crossings are found and timed.
-            steps = steps.max((8.0 * self.cfg.flicker_hz * dt * 1e-6).ceil().min(1e6) as u32);
+            steps = steps.max(
+                (8.0 * self.shared.cfg.flicker_hz * dt * 1e-6)
+                    .ceil()
+                    .min(1e6) as u32,
+            );
             most = most.max(FLICKER_MAX_SUBSTEPS);
             phase = self.flicker_phase(t0) - row.lag as f64;
-            omega = std::f64::consts::TAU * self.cfg.flicker_hz * 1e-6;
+            omega = std::f64::consts::TAU * self.shared.cfg.flicker_hz * 1e-6;
         }
         let steps = steps.clamp(1, most);
         let h = dt / steps as f64;
@@ -329,7 +334,7 @@ impl PhysicsSim {
         t1: i64,
         out: &mut Vec<Event>,
     ) {
-        let refractory = self.cfg.refractory_us;
+        let refractory = self.shared.cfg.refractory_us;
         // Relative to the interval's start: absolute times (~1.6e15 us for a DAVIS clock)
         // would cost f64 its microseconds, and a recording and its export with times from
         // another origin would differ by 1 us here and there.

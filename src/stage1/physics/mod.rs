@@ -68,6 +68,7 @@
 //! from it and the frame index.
 
 mod ahead;
+mod band;
 mod config;
 mod crossings;
 mod stats;
@@ -129,15 +130,13 @@ pub struct PhysicsSim {
     look_ahead: bool,
     /// The worker that finds it, once started.
     ahead: Option<ahead::Ahead>,
-    /// The wall time of the last step and its interval, for the motion model's cap keeper
-    /// while the worker had it.
-    unspent: Option<(f64, i64)>,
-    /// Scratch: which tiles of the band being advanced are active.
-    band: Vec<bool>,
-    /// Scratch: the slow pixels of the band being advanced.
-    slow: Vec<SlowPixel>,
-    /// Scratch of the slow path (see [`crossings`]).
-    lanes: Vec<crossings::Lane>,
+    /// The wall time of the last step, its interval and whether it ran through sub-frames,
+    /// for the motion model's cap keeper while the worker had it.
+    unspent: Option<(f64, i64, bool)>,
+    /// Scratch of the two bands a frame is stepped in (see [`band`]).
+    scratch: [band::Scratch; 2],
+    /// The second band's events, before they join the first's.
+    spill: Vec<Event>,
     stats: PhysicsStats,
 }
 
@@ -303,9 +302,8 @@ impl PhysicsSim {
             look_ahead: false,
             ahead: None,
             unspent: None,
-            slow: Vec::new(),
-            band: Vec::new(),
-            lanes: Vec::new(),
+            scratch: Default::default(),
+            spill: Vec::new(),
             width,
             height,
             seed,
@@ -455,6 +453,7 @@ impl PhysicsSim {
                 let (steps, k) = (&used.steps, used.frames.len() + 1);
                 let mut present = [false; 256];
                 steps.iter().for_each(|&d| present[usize::from(d)] = true);
+                let mut passes = Vec::new();
                 for d in (2..=u8::MAX).filter(|&d| present[usize::from(d)]) {
                     let mut t = t0;
                     for (t_sub, luma) in used
@@ -463,27 +462,29 @@ impl PhysicsSim {
                         .skip(k / d as usize - 1)
                         .step_by(k / d as usize)
                     {
-                        self.advance(luma, t, *t_sub, Some((steps, d)), out);
+                        passes.push(self.pass(luma, t, *t_sub, Some((steps, d))));
                         t = *t_sub;
                     }
-                    self.advance(&frame.luma, t, frame.t, Some((steps, d)), out);
+                    passes.push(self.pass(&frame.luma, t, frame.t, Some((steps, d))));
                 }
-                self.advance(&frame.luma, t0, frame.t, Some((steps, 1)), out);
+                passes.push(self.pass(&frame.luma, t0, frame.t, Some((steps, 1))));
+                self.advance(&passes, out);
                 stepped = true;
             }
             self.spare = Some(used);
         }
         if !stepped {
-            self.advance(&frame.luma, t0, frame.t, None, out);
+            let pass = self.pass(&frame.luma, t0, frame.t, None);
+            self.advance(&[pass], out);
         }
         self.stats.signal_events += (out.len() - start) as u64;
         self.noise(t0, frame, out);
         self.prev_t = Some(frame.t);
         self.stats.frames += 1;
         sort_events(&mut out[start..]);
-        let spent = (started.elapsed().as_secs_f64(), frame.t - t0);
+        let spent = (started.elapsed().as_secs_f64(), frame.t - t0, stepped);
         match &mut self.motion {
-            Some(motion) => motion.spent(spent.0, spent.1),
+            Some(motion) => motion.spent(spent.0, spent.1, spent.2),
             // With the worker: told when it comes back.
             None => self.unspent = Some(spent),
         }
@@ -508,8 +509,8 @@ impl PhysicsSim {
                 if !same {
                     motion.restore_stats(done.before);
                 }
-                if let Some((seconds, span)) = unspent {
-                    motion.spent(seconds, span);
+                if let Some((seconds, span, subframed)) = unspent {
+                    motion.spent(seconds, span, subframed);
                 }
                 if same {
                     return Ok(Some(motion));
@@ -579,80 +580,6 @@ impl PhysicsSim {
         Some(((reference * ratio).clamp(1e-4, 1e4) / g) as f32)
     }
 
-    /// Moves the pixels from their state at `t0` to the light `luma` at `t1` (the tiles whose
-    /// light did not change and whose pixels are at rest are skipped), appending the signal
-    /// events; `luma` becomes the previous light. `only: Some((mask, value))` moves only the
-    /// tiles whose mask entry is `value`.
-    fn advance(
-        &mut self,
-        luma: &[u16],
-        t0: i64,
-        t1: i64,
-        only: Option<(&[u8], u8)>,
-        out: &mut Vec<Event>,
-    ) {
-        let filter = self.filter_table((t1 - t0) as f64);
-        let tile = self.cfg.tile as usize;
-        let (w, h) = (self.width as usize, self.height as usize);
-        let tiles_x = w.div_ceil(tile);
-        // A band of tiles at a time, row by row across its active tiles: the pixels' state
-        // is read in the order it lies in memory. Pixels are independent and a frame's events
-        // are sorted afterwards, so the order does not change them.
-        let mut active = std::mem::take(&mut self.band);
-        let mut slow = std::mem::take(&mut self.slow);
-        for ty in 0..h.div_ceil(tile) {
-            let (y0, y1) = (ty * tile, ((ty + 1) * tile).min(h));
-            let tiles = ty * tiles_x..(ty + 1) * tiles_x;
-            active.clear();
-            active.extend(
-                tiles
-                    .clone()
-                    .map(|ti| only.is_none_or(|(mask, value)| mask[ti] == value)),
-            );
-            // A tile is skipped when its light did not change and its pixels are at rest.
-            let mut changed = vec![false; tiles_x];
-            for y in y0..y1 {
-                let (now, before) = (
-                    &luma[y * w..(y + 1) * w],
-                    &self.prev_luma[y * w..(y + 1) * w],
-                );
-                for (tx, c) in changed.iter_mut().enumerate() {
-                    if active[tx] && !*c {
-                        let seg = tx * tile..((tx + 1) * tile).min(w);
-                        *c = now[seg.clone()] != before[seg];
-                    }
-                }
-            }
-            for (tx, a) in active.iter_mut().enumerate() {
-                if *a && !changed[tx] && self.settled[tiles.start + tx] {
-                    self.stats.tiles_skipped += 1;
-                    *a = false;
-                } else if *a {
-                    self.stats.tiles_active += 1;
-                    self.settled[tiles.start + tx] = true;
-                }
-            }
-            if !active.contains(&true) {
-                continue;
-            }
-            slow.clear();
-            for y in y0..y1 {
-                for tx in (0..tiles_x).filter(|&tx| active[tx]) {
-                    let row = y * w + tx * tile..y * w + ((tx + 1) * tile).min(w);
-                    let before = slow.len();
-                    let settled = self.row(y, row.clone(), luma, t0, t1, &filter, &mut slow);
-                    self.settled[tiles.start + tx] &= settled && slow.len() == before;
-                    self.prev_luma[row.clone()].copy_from_slice(&luma[row]);
-                }
-            }
-            if !slow.is_empty() {
-                self.crossings(&slow, t0, t1, &filter, out);
-            }
-        }
-        self.slow = slow;
-        self.band = active;
-    }
-
     /// Frame values per unit of calibration light in `frame` (see [`LightModel`]): for the
     /// log front end (the scene model's scale, which also sets the frames' noise floor: the
     /// dark current and knee act on frame values), and for the photoreceptor (its bandwidth
@@ -700,6 +627,24 @@ impl PhysicsSim {
         }
     }
 
+    /// A step of the tiles `only` selects (all with `None`) to the light `luma` at `t1`
+    /// from `t0` (see [`band::Pass`]).
+    fn pass<'a>(
+        &self,
+        luma: &'a [u16],
+        t0: i64,
+        t1: i64,
+        only: Option<(&'a [u8], u8)>,
+    ) -> band::Pass<'a> {
+        band::Pass {
+            luma,
+            t0,
+            t1,
+            only,
+            filter: self.filter_table((t1 - t0) as f64),
+        }
+    }
+
     /// The photoreceptor at each of 256 light levels, relative to the scene's (see
     /// [`filter_index`]), over a frame interval of `dt` us.
     fn filter_table(&self, dt: f64) -> Vec<FilterRow> {
@@ -739,90 +684,6 @@ impl PhysicsSim {
                 }
             })
             .collect()
-    }
-
-    /// The flicker's phase (radians) at time `t` us.
-    fn flicker_phase(&self, t: i64) -> f64 {
-        let period = 1e6 / self.cfg.flicker_hz;
-        std::f64::consts::TAU * (t as f64).rem_euclid(period) / period
-    }
-
-    /// Advances the pixels of `range` (one tile row, row `y`) from `t0` to `t1`; returns whether
-    /// all are at rest. The common case, a pixel whose filtered response cannot reach a
-    /// threshold, is handled here on slices; the rest are appended to `slow` for
-    /// [`PhysicsSim::crossings`], which leaves their state untouched until then.
-    #[allow(clippy::too_many_arguments)]
-    fn row(
-        &mut self,
-        y: usize,
-        range: std::ops::Range<usize>,
-        luma: &[u16],
-        t0: i64,
-        t1: i64,
-        filter: &[FilterRow],
-        slow: &mut Vec<SlowPixel>,
-    ) -> bool {
-        let inv_dt = 1.0 / (t1 - t0) as f32;
-        let start = range.start;
-        let luma = &luma[range.clone()];
-        let l_in = &mut self.l_in[range.clone()];
-        let l_p = &mut self.l_p[range.clone()];
-        let l_ref = &self.l_ref[range.clone()];
-        let on = &self.thr_on[range.clone()];
-        let off = &self.thr_off[range];
-        // In three passes over the row, so the middle one, the arithmetic, runs on vectors:
-        // the tables' values of each pixel's light, one array per quantity; each pixel's
-        // response over the interval and whether it stays within its thresholds (kept) or may
-        // cross one (the slow path); the slow pixels. A tile row has at most 64 pixels
-        // (checked by `validate`).
-        let n = luma.len().min(64);
-        let mut l1s = [0.0f32; 64];
-        let mut taus = [0.0f32; 64];
-        let mut decays = [0.0f32; 64];
-        let mut amps = [0.0f32; 64];
-        for j in 0..n {
-            let v = luma[j];
-            l1s[j] = self.log_lut[v as usize];
-            let row = filter[self.filter_rows[v as usize] as usize];
-            (taus[j], decays[j], amps[j]) = (row.tau, row.decay, row.amp);
-        }
-        let mut kept = [false; 64];
-        let mut settled = true;
-        let (l_in, l_p, l_ref, on, off) = (
-            &mut l_in[..n],
-            &mut l_p[..n],
-            &l_ref[..n],
-            &on[..n],
-            &off[..n],
-        );
-        for j in 0..n {
-            let (l1, l0, y0) = (l1s[j], l_in[j], l_p[j]);
-            let (tau, decay, amp) = (taus[j], decays[j], amps[j]);
-            let rt = (l1 - l0) * inv_dt * tau;
-            let filtered = l1 - rt + (y0 - l0 + rt) * decay;
-            let y1 = if tau > 0.0 { filtered } else { l1 };
-            // The flicker swings the response by up to `amp` either way.
-            let hi = y0.max(l0).max(l1).max(y1) + amp;
-            let lo = y0.min(l0).min(l1).min(y1) - amp;
-            let lref = l_ref[j];
-            let keep = (hi - lref < on[j]) & (lref - lo < off[j]);
-            kept[j] = keep;
-            settled &= !keep | ((l0 == l1) & ((y1 - l1).abs() < 1e-4));
-            l_in[j] = if keep { l1 } else { l0 };
-            l_p[j] = if keep { y1 } else { y0 };
-        }
-        let x0 = start - y * self.width as usize;
-        for (j, &keep) in kept[..n].iter().enumerate() {
-            if !keep {
-                slow.push(SlowPixel {
-                    i: start + j,
-                    x: (x0 + j) as u16,
-                    y: y as u16,
-                    v: luma[j],
-                });
-            }
-        }
-        settled
     }
 
     /// Sparse noise events in `(t0, frame.t]`.
