@@ -1,4 +1,5 @@
-//! HDF5 event files in the DSEC layout (`events.h5`), read and written.
+//! HDF5 event files in the DSEC layout (`events.h5`), read and written, in pure Rust (the
+//! `rust-hdf5` crate: no system HDF5 library).
 //!
 //! | path | type | content |
 //! |---|---|---|
@@ -8,6 +9,7 @@
 //! | `ms_to_idx` | u64 | for each millisecond `m` from 0 to the last event's, the index of the first event with `t >= 1000 m` |
 //! | `t_offset` | i64 scalar | the absolute time of relative 0, in us |
 //! | root attributes `width`, `height` | u16 | the sensor size (our addition) |
+//! | attribute `width` of `events/x`, `height` of `events/y` | u16 | the same, where this reader finds it |
 //!
 //! `events/x[ms_to_idx[m]:ms_to_idx[m + 1]]` (and likewise `y`, `t`, `p`) are the events of
 //! millisecond `m`; an absolute time is `events/t[i] + t_offset`.
@@ -17,28 +19,29 @@
 //! deflate (gzip) filters, which h5py and every HDF5 build read without plugins (DSEC's own
 //! files use the blosc plugin instead). `events/t` is u32, as in DSEC, while the recording spans
 //! under 2^32 us (about 71.6 minutes); the first event past that rewrites the column as i64 (the
-//! values move, in chunks, to a new dataset that takes the name `events/t`), so a long
-//! recording is read the same way, and `t + t_offset` stays an exact integer in NumPy (an i64
-//! column, unlike a u64 one, does not turn into floats when added to the i64 offset). Events
-//! and `ms_to_idx` are buffered a chunk at a time, so memory stays flat however long the input.
-//! `ms_to_idx` has an entry per millisecond of the span whatever the event count (a 5.8-hour
-//! sparse stream has 21 million, runs of equal values that deflate compresses to little), so a
-//! file spans at most [`MAX_SPAN_US`] (2^40 us, 12.7 days: two events that far apart take 18 s
-//! and 39 MB here) and an event farther from the first is refused. Events
-//! must come in time order and inside the sensor size given to [`Encoder::create`].
+//! file is closed and opened again, and the values move, in chunks, to a new dataset that takes
+//! the name `events/t`), so a long recording is read the same way, and `t + t_offset` stays an
+//! exact integer in NumPy (an i64 column, unlike a u64 one, does not turn into floats when
+//! added to the i64 offset). Events and `ms_to_idx` are buffered a chunk at a time, so memory
+//! stays flat however long the input. `ms_to_idx` has an entry per millisecond of the span
+//! whatever the event count (a 5.8-hour sparse stream has 21 million, runs of equal values that
+//! deflate compresses to little), so a file spans at most [`MAX_SPAN_US`] (2^40 us, 12.7 days)
+//! and an event farther from the first is refused. Events must come in time order and inside
+//! the sensor size given to [`Encoder::create`]. The files need HDF5 1.10 or later to read
+//! (every h5py of the last years).
 //!
 //! Reading: any integer types are accepted for the four columns (checked against the event's
 //! ranges), polarity 1 is ON and 0 or -1 OFF, `t_offset` defaults to 0 when absent, and the
 //! columns are read a slice at a time. `ms_to_idx` is not needed to read the events. The sensor
-//! size comes from the root attributes `width` and `height`, absent from DSEC's files (where
-//! [`EventDecoder::size`] is `None`). A file compressed with a filter this HDF5 library lacks
-//! (DSEC's blosc, unless its plugin is on `HDF5_PLUGIN_PATH`) is refused when opened.
+//! size comes from the `width` and `height` attributes of `events/x` and `events/y`, absent
+//! from DSEC's files and from those v2ce wrote with the C library, which kept it in root
+//! attributes only (there [`EventDecoder::size`] is `None`: the events tell). Compression: deflate, shuffle,
+//! Fletcher-32, LZF and blosc (lz4, zstd, zlib, blosclz; DSEC's files) are read; a file with
+//! another filter is refused when opened.
 
-use std::ops::Range;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
-use hdf5_metno as h5;
-use hdf5_metno::types::{IntSize, TypeDescriptor};
+use rust_hdf5 as h5;
 
 use super::{check_event, EventDecoder, EventEncoder};
 use crate::error::{Error, Result};
@@ -56,8 +59,8 @@ pub const T_OFFSET: &str = "t_offset";
 /// Values per chunk, in every dataset; also the encoder's buffer, in events.
 const CHUNK: usize = 1 << 16;
 
-/// The deflate level (1 to 9): the fastest.
-const DEFLATE_LEVEL: u8 = 1;
+/// The deflate level (1 to 9): 2 writes files as small as the C library's level 1 did, as fast.
+const DEFLATE_LEVEL: u32 = 2;
 
 /// The largest relative time `events/t` holds as u32.
 const T32_MAX: i64 = u32::MAX as i64;
@@ -69,52 +72,74 @@ pub const MAX_SPAN_US: i64 = 1 << 40;
 /// The name `events/t`'s i64 copy has while it is filled, before it takes the name `t`.
 const T_WIDE_TEMP: &str = "t_i64";
 
+/// HDF5 filter ids this reader decodes (deflate, shuffle, Fletcher-32, LZF, blosc).
+const READABLE_FILTERS: [u16; 5] = [1, 2, 3, 32000, 32001];
+
 fn bad(message: impl Into<String>) -> Error {
     Error::invalid("HDF5", message.into())
 }
 
-fn h5err(what: &str) -> impl Fn(h5::Error) -> Error + '_ {
+fn h5err(what: &str) -> impl Fn(h5::Hdf5Error) -> Error + '_ {
     move |e| bad(format!("{what}: {e}"))
 }
 
+/// How the files are locked: as HDF5 does (honouring `HDF5_USE_FILE_LOCKING`), and not at all
+/// where the file system has no locks.
+fn options() -> h5::H5FileOptions {
+    h5::H5File::options().best_effort_locking()
+}
+
 /// A new 1-D, extendable, chunked, compressed dataset of `T` named `name` in `group`.
-fn column<T: h5::H5Type>(group: &h5::Group, name: &str) -> Result<h5::Dataset> {
+fn column<T: h5::H5Type>(group: &h5::H5Group, name: &str) -> Result<h5::H5Dataset> {
     group
         .new_dataset::<T>()
-        .chunk(CHUNK)
-        .shuffle()
-        .deflate(DEFLATE_LEVEL)
-        .shape(0..)
+        .shape([0usize])
+        .chunk(&[CHUNK])
+        .max_shape(&[None])
+        .shuffle_deflate(DEFLATE_LEVEL)
         .create(name)
         .map_err(h5err(name))
 }
 
-/// Appends `values` at `at` to a dataset made by [`column`] (converting to its type).
-fn append<T: h5::H5Type>(ds: &h5::Dataset, at: usize, values: &[T], what: &str) -> Result<()> {
+/// Appends `values` to a dataset made by [`column`].
+fn append<T: h5::H5Type>(ds: &h5::H5Dataset, values: &[T], what: &str) -> Result<()> {
     if values.is_empty() {
         return Ok(());
     }
-    let end = at + values.len();
-    ds.resize(end).map_err(h5err(what))?;
-    ds.write_slice(values, at..end).map_err(h5err(what))
+    ds.append(values).map_err(h5err(what))
 }
 
 /// The datasets the encoder writes.
 struct Columns {
-    x: h5::Dataset,
-    y: h5::Dataset,
-    t: h5::Dataset,
-    p: h5::Dataset,
-    ms_to_idx: h5::Dataset,
-    t_offset: h5::Dataset,
-    events: h5::Group,
+    x: h5::H5Dataset,
+    y: h5::H5Dataset,
+    t: h5::H5Dataset,
+    p: h5::H5Dataset,
+    ms_to_idx: h5::H5Dataset,
+    t_offset: h5::H5Dataset,
+}
+
+impl Columns {
+    /// The datasets of a file written so far, opened again for appending.
+    fn reopen(file: &h5::H5File) -> Result<Self> {
+        let open = |name: &str| file.dataset_writer(name).map_err(h5err(name));
+        Ok(Columns {
+            x: open("events/x")?,
+            y: open("events/y")?,
+            t: open("events/t")?,
+            p: open("events/p")?,
+            ms_to_idx: open(MS_TO_IDX)?,
+            t_offset: open(T_OFFSET)?,
+        })
+    }
 }
 
 /// Writes an HDF5 event file in the DSEC layout (see the module docs).
 pub struct Encoder {
     // The datasets close before the file (fields drop in this order).
     columns: Option<Columns>,
-    file: Option<h5::File>,
+    file: Option<h5::H5File>,
+    path: PathBuf,
     width: u16,
     height: u16,
     /// Whether `events/t` is i64 (the recording outgrew u32).
@@ -127,8 +152,6 @@ pub struct Encoder {
     flushed: usize,
     /// `ms_to_idx` entries made (flushed or buffered): the next millisecond to index.
     next_ms: u64,
-    /// `ms_to_idx` entries flushed.
-    ms_flushed: usize,
     bx: Vec<u16>,
     by: Vec<u16>,
     bt: Vec<i64>,
@@ -139,12 +162,11 @@ pub struct Encoder {
 impl Encoder {
     /// Creates (or truncates) `path` for a `width x height` sensor.
     pub fn create(path: &Path, width: u16, height: u16) -> Result<Self> {
-        let file = h5::File::create(path).map_err(h5err("cannot create the file"))?;
+        let file = options()
+            .create(path)
+            .map_err(h5err("cannot create the file"))?;
         for (name, value) in [("width", width), ("height", height)] {
-            file.new_attr::<u16>()
-                .create(name)
-                .and_then(|a| a.write_scalar(&value))
-                .map_err(h5err(name))?;
+            file.set_attr_numeric(name, &value).map_err(h5err(name))?;
         }
         let events = file.create_group(EVENTS).map_err(h5err(EVENTS))?;
         let columns = Columns {
@@ -152,18 +174,25 @@ impl Encoder {
             y: column::<u16>(&events, "y")?,
             t: column::<u32>(&events, "t")?,
             p: column::<u8>(&events, "p")?,
-            ms_to_idx: column::<u64>(&file, MS_TO_IDX)?,
+            ms_to_idx: column::<u64>(&file.root_group(), MS_TO_IDX)?,
             // 0 until the first event, whose time it then holds.
             t_offset: file
                 .new_dataset::<i64>()
+                .scalar()
                 .create(T_OFFSET)
-                .and_then(|d| d.write_scalar(&0i64).map(|_| d))
+                .and_then(|d| d.write_raw(&[0i64]).map(|_| d))
                 .map_err(h5err(T_OFFSET))?,
-            events,
         };
+        for (ds, name, value) in [(&columns.x, "width", width), (&columns.y, "height", height)] {
+            ds.new_attr::<u16>()
+                .create(name)
+                .and_then(|a| a.write_numeric(&value))
+                .map_err(h5err(name))?;
+        }
         Ok(Encoder {
             columns: Some(columns),
             file: Some(file),
+            path: path.to_path_buf(),
             width,
             height,
             t_wide: false,
@@ -172,7 +201,6 @@ impl Encoder {
             count: 0,
             flushed: 0,
             next_ms: 0,
-            ms_flushed: 0,
             bx: Vec::with_capacity(CHUNK),
             by: Vec::with_capacity(CHUNK),
             bt: Vec::with_capacity(CHUNK),
@@ -188,11 +216,16 @@ impl Encoder {
     /// Writes the buffered events.
     fn flush_events(&mut self) -> Result<()> {
         let c = self.columns()?;
-        let at = self.flushed;
-        append(&c.x, at, &self.bx, "events/x")?;
-        append(&c.y, at, &self.by, "events/y")?;
-        append(&c.t, at, &self.bt, "events/t")?;
-        append(&c.p, at, &self.bp, "events/p")?;
+        append(&c.x, &self.bx, "events/x")?;
+        append(&c.y, &self.by, "events/y")?;
+        if self.t_wide {
+            append(&c.t, &self.bt, "events/t")?;
+        } else {
+            // Below `T32_MAX` until the column widens (see `write`).
+            let narrow: Vec<u32> = self.bt.iter().map(|&t| t as u32).collect();
+            append(&c.t, &narrow, "events/t")?;
+        }
+        append(&c.p, &self.bp, "events/p")?;
         self.flushed += self.bx.len();
         self.bx.clear();
         self.by.clear();
@@ -203,42 +236,51 @@ impl Encoder {
 
     /// Writes the buffered `ms_to_idx` entries.
     fn flush_ms(&mut self) -> Result<()> {
-        append(
-            &self.columns()?.ms_to_idx,
-            self.ms_flushed,
-            &self.bms,
-            MS_TO_IDX,
-        )?;
-        self.ms_flushed += self.bms.len();
+        append(&self.columns()?.ms_to_idx, &self.bms, MS_TO_IDX)?;
         self.bms.clear();
         Ok(())
     }
 
-    /// Rewrites the flushed part of `events/t` as i64, in chunks, under the same name.
+    /// Rewrites the flushed part of `events/t` as i64, in chunks, under the same name. A file
+    /// being written cannot be read from: it is closed, opened again for writing, and the old
+    /// column read through a second handle.
     fn widen_t(&mut self) -> Result<()> {
-        let flushed = self.flushed;
-        let c = self
-            .columns
-            .as_mut()
-            .ok_or_else(|| bad("already finished"))?;
-        let wide = column::<i64>(&c.events, T_WIDE_TEMP)?;
-        let mut at = 0;
-        while at < flushed {
-            let end = (at + CHUNK).min(flushed);
-            let part =
-                c.t.read_slice_1d::<i64, _>(at..end)
+        let (Some(columns), Some(file)) = (self.columns.take(), self.file.take()) else {
+            return Err(bad("already finished"));
+        };
+        drop(columns);
+        file.close_no_sync()
+            .map_err(h5err("cannot close the file to widen events/t"))?;
+        let file = options()
+            .open_rw(&self.path)
+            .map_err(h5err("cannot open the file again to widen events/t"))?;
+        let events = file.root_group().group(EVENTS).map_err(h5err(EVENTS))?;
+        let wide = column::<i64>(&events, T_WIDE_TEMP)?;
+        {
+            let old = h5::H5File::options()
+                .no_locking()
+                .open(&self.path)
+                .map_err(h5err("events/t"))?;
+            let t = old.dataset("events/t").map_err(h5err("events/t"))?;
+            let mut at = 0;
+            while at < self.flushed {
+                let n = CHUNK.min(self.flushed - at);
+                let part = t
+                    .read_numeric_slice_as::<i64>(&[at], &[n])
                     .map_err(h5err("events/t"))?;
-            let part = part
-                .as_slice()
-                .ok_or_else(|| bad("events/t: a slice read back not contiguous"))?;
-            append(&wide, at, part, "events/t")?;
-            at = end;
+                append(&wide, &part, "events/t")?;
+                at += n;
+            }
         }
-        c.events.unlink("t").map_err(h5err("events/t"))?;
-        c.events
-            .relink(T_WIDE_TEMP, "t")
+        drop(wide);
+        let temp = format!("{EVENTS}/{T_WIDE_TEMP}");
+        file.delete_dataset("events/t").map_err(h5err("events/t"))?;
+        events
+            .link("t", &format!("/{temp}"))
             .map_err(h5err("events/t"))?;
-        c.t = wide;
+        file.delete_dataset(&temp).map_err(h5err("events/t"))?;
+        self.columns = Some(Columns::reopen(&file)?);
+        self.file = Some(file);
         self.t_wide = true;
         Ok(())
     }
@@ -255,7 +297,7 @@ impl EventEncoder for Encoder {
                 None => {
                     self.columns()?
                         .t_offset
-                        .write_scalar(&e.t)
+                        .write_raw(&[e.t])
                         .map_err(h5err(T_OFFSET))?;
                     *self.t_offset.insert(e.t)
                 }
@@ -271,6 +313,8 @@ impl EventEncoder for Encoder {
                 )));
             }
             if rel > T32_MAX && !self.t_wide {
+                // The buffered times go out as u32 first: all are below the limit.
+                self.flush_events()?;
                 self.widen_t()?;
             }
             // The first event at or after millisecond `next_ms` (events come in time order):
@@ -304,77 +348,55 @@ impl EventEncoder for Encoder {
             return Err(bad("finished twice"));
         };
         drop(columns);
-        file.flush().map_err(h5err("cannot flush the file"))?;
         file.close().map_err(h5err("cannot close the file"))
     }
 }
 
-/// How a column's values are read.
-#[derive(Clone, Copy, PartialEq, Eq)]
-enum Int {
-    /// Any integer type up to 64 bits signed (or 32 unsigned): read as i64.
-    Signed,
-    /// u64: read as such, then checked into i64.
-    U64,
-}
-
-/// Opens `events/NAME`, checks it is a 1-D integer dataset whose filters are available, and
-/// returns it with how to read it.
-fn open_column(events: &h5::Group, name: &str) -> Result<(h5::Dataset, Int)> {
-    let what = format!("{EVENTS}/{name}");
-    let ds = events
+/// Opens `NAME` (a path from the root), checks it is a 1-D integer dataset whose filters this
+/// reader decodes.
+fn open_column(file: &h5::H5File, name: &str) -> Result<h5::H5Dataset> {
+    let ds = file
         .dataset(name)
-        .map_err(|_| bad(format!("no {what} dataset")))?;
-    if ds.ndim() != 1 {
+        .map_err(|_| bad(format!("no {name} dataset")))?;
+    let shape = ds.shape();
+    if shape.len() != 1 {
         return Err(bad(format!(
-            "{what} has shape {:?}; expected one dimension",
-            ds.shape()
+            "{name} has shape {shape:?}; expected one dimension"
         )));
     }
-    let dtype = ds
-        .dtype()
-        .and_then(|d| d.to_descriptor())
-        .map_err(h5err(&what))?;
-    let int = match dtype {
-        TypeDescriptor::Unsigned(IntSize::U8) => Int::U64,
-        TypeDescriptor::Integer(_) | TypeDescriptor::Unsigned(_) => Int::Signed,
-        other => return Err(bad(format!("{what} holds {other}; expected integers"))),
-    };
-    let plist = ds.create_plist().map_err(h5err(&what))?;
-    if let Some(f) = plist.filters().iter().find(|f| !f.is_available()) {
-        let name = match f.id() {
-            32001 => "blosc (as in DSEC's files)".to_string(),
-            id => format!("number {id}"),
-        };
+    match ds.datatype().map_err(h5err(name))? {
+        h5::DatatypeMessage::FixedPoint { .. } => {}
+        other => return Err(bad(format!("{name} holds {other:?}; expected integers"))),
+    }
+    let filters = ds.filters().map_err(h5err(name))?;
+    if let Some(f) = filters.iter().find(|f| !READABLE_FILTERS.contains(&f.id)) {
         return Err(bad(format!(
-            "{what} is compressed with HDF5 filter {name}, which this HDF5 library lacks \
-             (put its plugin on HDF5_PLUGIN_PATH, or rewrite the file with gzip or no compression)"
+            "{name} is compressed with HDF5 filter number {}, which this reader lacks \
+             (rewrite the file with gzip, blosc or no compression)",
+            f.id
         )));
     }
-    Ok((ds, int))
+    Ok(ds)
 }
 
-/// Reads `range` of a column as i64.
-fn read_column(ds: &h5::Dataset, int: Int, range: Range<usize>, what: &str) -> Result<Vec<i64>> {
-    let err = || h5err(what);
-    match int {
-        Int::Signed => Ok(ds
-            .read_slice_1d::<i64, _>(range)
-            .map_err(err())?
-            .into_raw_vec_and_offset()
-            .0),
-        Int::U64 => ds
-            .read_slice_1d::<u64, _>(range)
-            .map_err(err())?
-            .iter()
-            .map(|&v| i64::try_from(v).map_err(|_| bad(format!("{what} holds {v}"))))
-            .collect(),
+/// Reads `n` values of a column from `at` as i64 (any integer type; a u64 above `i64::MAX`
+/// is an error).
+fn read_column(ds: &h5::H5Dataset, at: usize, n: usize, what: &str) -> Result<Vec<i64>> {
+    let values = ds
+        .read_numeric_slice_as::<i64>(&[at], &[n])
+        .map_err(h5err(what))?;
+    if values.len() != n {
+        return Err(bad(format!(
+            "{what}: {} values read of {n} asked",
+            values.len()
+        )));
     }
+    Ok(values)
 }
 
-/// Reads an integer attribute of the root group, `None` when absent.
-fn read_root_attr(file: &h5::File, name: &str) -> Result<Option<i64>> {
-    if !file
+/// An integer attribute `name` of dataset `ds`, `None` when absent.
+fn read_attr(ds: &h5::H5Dataset, name: &str) -> Result<Option<i64>> {
+    if !ds
         .attr_names()
         .map_err(h5err("attributes"))?
         .iter()
@@ -382,63 +404,75 @@ fn read_root_attr(file: &h5::File, name: &str) -> Result<Option<i64>> {
     {
         return Ok(None);
     }
-    file.attr(name)
-        .and_then(|a| a.read_scalar::<i64>())
-        .map(Some)
-        .map_err(h5err(name))
+    let values = ds
+        .attr(name)
+        .and_then(|a| a.read_numeric_as::<i64>())
+        .map_err(h5err(name))?;
+    match values[..] {
+        [v] => Ok(Some(v)),
+        _ => Err(bad(format!(
+            "{name} has {} values; expected one",
+            values.len()
+        ))),
+    }
 }
 
 /// Reads an HDF5 event file in the DSEC layout (see the module docs) a slice at a time.
 pub struct Decoder {
-    x: (h5::Dataset, Int),
-    y: (h5::Dataset, Int),
-    t: (h5::Dataset, Int),
-    p: (h5::Dataset, Int),
+    x: h5::H5Dataset,
+    y: h5::H5Dataset,
+    t: h5::H5Dataset,
+    p: h5::H5Dataset,
     len: usize,
     pos: usize,
     t_offset: i64,
     size: Option<(u16, u16)>,
     compression: String,
-    _file: h5::File,
+    _file: h5::H5File,
 }
 
 impl Decoder {
     /// Opens `path` and checks its layout (the four columns, their lengths, `t_offset`, the
     /// size attributes).
     pub fn open(path: &Path) -> Result<Self> {
-        let file = h5::File::open(path).map_err(|e| bad(format!("cannot open as HDF5: {e}")))?;
-        let events = file
-            .group(EVENTS)
-            .map_err(|_| bad(format!("no {EVENTS} group (not a DSEC-layout event file)")))?;
-        let x = open_column(&events, "x")?;
-        let y = open_column(&events, "y")?;
-        let t = open_column(&events, "t")?;
-        let p = open_column(&events, "p")?;
-        let len = x.0.size();
+        let file = options()
+            .open(path)
+            .map_err(|e| bad(format!("cannot open as HDF5: {e}")))?;
+        if file.root_group().group(EVENTS).is_err() {
+            return Err(bad(format!(
+                "no {EVENTS} group (not a DSEC-layout event file)"
+            )));
+        }
+        let x = open_column(&file, "events/x")?;
+        let y = open_column(&file, "events/y")?;
+        let t = open_column(&file, "events/t")?;
+        let p = open_column(&file, "events/p")?;
+        let len = x.shape()[0];
         for (name, col) in [("y", &y), ("t", &t), ("p", &p)] {
-            if col.0.size() != len {
+            if col.shape()[0] != len {
                 return Err(bad(format!(
                     "{EVENTS}/x has {len} values but {EVENTS}/{name} has {}",
-                    col.0.size()
+                    col.shape()[0]
                 )));
             }
         }
-        let t_offset = if file.link_exists(T_OFFSET) {
-            let ds = file.dataset(T_OFFSET).map_err(h5err(T_OFFSET))?;
-            if ds.size() != 1 {
-                return Err(bad(format!(
-                    "{T_OFFSET} has {} values; expected one",
-                    ds.size()
-                )));
+        let t_offset = match file.dataset(T_OFFSET) {
+            Ok(ds) => {
+                if ds.total_elements() != 1 {
+                    return Err(bad(format!(
+                        "{T_OFFSET} has {} values; expected one",
+                        ds.total_elements()
+                    )));
+                }
+                ds.read_numeric_as::<i64>()
+                    .map_err(h5err(T_OFFSET))?
+                    .first()
+                    .copied()
+                    .ok_or_else(|| bad(format!("{T_OFFSET} has no value")))?
             }
-            ds.read_raw::<i64>().map_err(h5err(T_OFFSET))?[0]
-        } else {
-            0
+            Err(_) => 0,
         };
-        let size = match (
-            read_root_attr(&file, "width")?,
-            read_root_attr(&file, "height")?,
-        ) {
+        let size = match (read_attr(&x, "width")?, read_attr(&y, "height")?) {
             (Some(w), Some(h)) => {
                 let fit = |v: i64| u16::try_from(v).ok().filter(|&v| v > 0);
                 match (fit(w), fit(h)) {
@@ -448,7 +482,7 @@ impl Decoder {
             }
             _ => None,
         };
-        let compression = describe_filters(&t.0);
+        let compression = describe_filters(&t);
         Ok(Decoder {
             x,
             y,
@@ -485,23 +519,21 @@ impl Decoder {
 }
 
 /// A dataset's filters by name, joined with `+`, or `none`.
-fn describe_filters(ds: &h5::Dataset) -> String {
+fn describe_filters(ds: &h5::H5Dataset) -> String {
     let names: Vec<String> = ds
-        .create_plist()
-        .map(|p| p.filters())
+        .filters()
         .unwrap_or_default()
         .iter()
-        .map(|f| match f {
-            h5::filters::Filter::Deflate(_) => "deflate".to_string(),
-            h5::filters::Filter::Shuffle => "shuffle".to_string(),
-            h5::filters::Filter::Fletcher32 => "fletcher32".to_string(),
-            h5::filters::Filter::SZip(..) => "szip".to_string(),
-            h5::filters::Filter::NBit => "nbit".to_string(),
-            h5::filters::Filter::ScaleOffset(_) => "scaleoffset".to_string(),
-            other => match other.id() {
-                32001 => "blosc".to_string(),
-                id => format!("filter {id}"),
-            },
+        .map(|f| match f.id {
+            1 => "deflate".to_string(),
+            2 => "shuffle".to_string(),
+            3 => "fletcher32".to_string(),
+            4 => "szip".to_string(),
+            5 => "nbit".to_string(),
+            6 => "scaleoffset".to_string(),
+            32000 => "lzf".to_string(),
+            32001 => "blosc".to_string(),
+            id => format!("filter {id}"),
         })
         .collect();
     if names.is_empty() {
@@ -521,11 +553,11 @@ impl EventDecoder for Decoder {
         if n == 0 {
             return Ok(0);
         }
-        let range = self.pos..self.pos + n;
-        let x = read_column(&self.x.0, self.x.1, range.clone(), "events/x")?;
-        let y = read_column(&self.y.0, self.y.1, range.clone(), "events/y")?;
-        let t = read_column(&self.t.0, self.t.1, range.clone(), "events/t")?;
-        let p = read_column(&self.p.0, self.p.1, range, "events/p")?;
+        let at = self.pos;
+        let x = read_column(&self.x, at, n, "events/x")?;
+        let y = read_column(&self.y, at, n, "events/y")?;
+        let t = read_column(&self.t, at, n, "events/t")?;
+        let p = read_column(&self.p, at, n, "events/p")?;
         out.reserve(n);
         for (i, (((&x, &y), &t), &p)) in x.iter().zip(&y).zip(&t).zip(&p).enumerate() {
             let at = self.pos + i;
@@ -586,16 +618,27 @@ mod tests {
             .collect()
     }
 
-    fn stored(path: &Path) -> (Vec<i64>, Vec<u64>, i64, TypeDescriptor) {
-        let f = h5::File::open(path).unwrap();
+    /// `events/t` (as i64), `ms_to_idx`, `t_offset` and the type of `events/t`.
+    fn stored(path: &Path) -> (Vec<i64>, Vec<u64>, i64, h5::DatatypeMessage) {
+        let f = h5::H5File::open(path).unwrap();
         let t = f.dataset("events/t").unwrap();
-        let dtype = t.dtype().unwrap().to_descriptor().unwrap();
         (
-            t.read_raw::<i64>().unwrap(),
-            f.dataset(MS_TO_IDX).unwrap().read_raw::<u64>().unwrap(),
-            f.dataset(T_OFFSET).unwrap().read_scalar::<i64>().unwrap(),
-            dtype,
+            t.read_numeric_as::<i64>().unwrap(),
+            f.dataset(MS_TO_IDX)
+                .unwrap()
+                .read_numeric_as::<u64>()
+                .unwrap(),
+            f.dataset(T_OFFSET)
+                .unwrap()
+                .read_numeric_as::<i64>()
+                .unwrap()[0],
+            t.datatype().unwrap(),
         )
+    }
+
+    /// Whether `dtype` is an integer type of `size` bytes, `signed` or not.
+    fn is_int(dtype: &h5::DatatypeMessage, size: u32, signed: bool) -> bool {
+        matches!(dtype, h5::DatatypeMessage::FixedPoint { size: s, signed: g, .. } if *s == size && *g == signed)
     }
 
     #[test]
@@ -618,7 +661,7 @@ mod tests {
         assert_eq!(got, events);
         let (t, ms, offset, dtype) = stored(&path);
         assert_eq!(offset, t0);
-        assert_eq!(dtype, TypeDescriptor::Unsigned(IntSize::U4));
+        assert!(is_int(&dtype, 4, false), "{dtype:?}");
         assert_eq!(t[0], 0);
         assert_eq!(ms, ms_to_idx_of(&t));
         // Through `open` and `read_events`, by extension.
@@ -675,14 +718,14 @@ mod tests {
         assert_eq!(got, events);
         let (t, ms, offset, dtype) = stored(&path);
         assert_eq!(offset, -5_000);
-        assert_eq!(dtype, TypeDescriptor::Integer(IntSize::U8));
+        assert!(is_int(&dtype, 8, true), "{dtype:?}");
         assert_eq!(ms.len() as i64, t.last().unwrap() / 1000 + 1);
         for (m, &i) in ms.iter().enumerate().step_by(997) {
             let i = i as usize;
             assert!(t[i] >= m as i64 * 1000 && (i == 0 || t[i - 1] < m as i64 * 1000));
         }
-        let f = h5::File::open(&path).unwrap();
-        assert!(!f.group(EVENTS).unwrap().link_exists(T_WIDE_TEMP));
+        let f = h5::H5File::open(&path).unwrap();
+        assert!(f.dataset(&format!("{EVENTS}/{T_WIDE_TEMP}")).is_err());
         drop(f);
         std::fs::remove_dir_all(&dir).unwrap();
     }
@@ -706,25 +749,26 @@ mod tests {
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
-    /// Writes an HDF5 file with the given `events/NAME` u16 columns (`t` as u32).
-    fn write_columns(path: &Path, columns: &[(&str, usize)]) {
-        let f = h5::File::create(path).unwrap();
+    /// Writes an HDF5 file with the given `events/NAME` u16 columns (`t` as u32), `p` the
+    /// values 0, 1, 0, ... with `bad_p` at index 1 where given.
+    fn write_columns(path: &Path, columns: &[(&str, usize)], bad_p: Option<u16>) {
+        let f = h5::H5File::create(path).unwrap();
         let g = f.create_group(EVENTS).unwrap();
         for &(name, n) in columns {
             let values: Vec<u32> = (0..n as u32).collect();
             if name == "t" {
-                g.new_dataset_builder()
-                    .with_data(&values)
-                    .create(name)
-                    .unwrap();
+                let ds = g.new_dataset::<u32>().shape([n]).create(name).unwrap();
+                ds.write_raw(&values).unwrap();
             } else {
-                let values: Vec<u16> = values.iter().map(|&v| (v % 2) as u16).collect();
-                g.new_dataset_builder()
-                    .with_data(&values)
-                    .create(name)
-                    .unwrap();
+                let mut values: Vec<u16> = values.iter().map(|&v| (v % 2) as u16).collect();
+                if let (Some(v), "p") = (bad_p, name) {
+                    values[1] = v;
+                }
+                let ds = g.new_dataset::<u16>().shape([n]).create(name).unwrap();
+                ds.write_raw(&values).unwrap();
             }
         }
+        f.close().unwrap();
     }
 
     fn open_error(path: &Path) -> String {
@@ -743,10 +787,10 @@ mod tests {
         let err = super::super::open(&p).err().unwrap().to_string();
         assert!(err.contains("not.h5") && err.contains("HDF5"), "{err}");
         let p = dir.join("no-t.h5");
-        write_columns(&p, &[("x", 3), ("y", 3), ("p", 3)]);
+        write_columns(&p, &[("x", 3), ("y", 3), ("p", 3)], None);
         assert!(open_error(&p).contains("no events/t"), "{}", open_error(&p));
         let p = dir.join("lengths.h5");
-        write_columns(&p, &[("x", 3), ("y", 3), ("t", 4), ("p", 3)]);
+        write_columns(&p, &[("x", 3), ("y", 3), ("t", 4), ("p", 3)], None);
         assert!(
             open_error(&p).contains("events/t has 4"),
             "{}",
@@ -754,7 +798,7 @@ mod tests {
         );
         // Well formed, no t_offset, no size: DSEC-like; then a polarity out of range.
         let p = dir.join("ok.h5");
-        write_columns(&p, &[("x", 3), ("y", 3), ("t", 3), ("p", 3)]);
+        write_columns(&p, &[("x", 3), ("y", 3), ("t", 3), ("p", 3)], None);
         let (size, got) = read(&p, 2);
         assert_eq!(size, None);
         assert_eq!(
@@ -765,13 +809,8 @@ mod tests {
                 Event::new(2, 0, 0, false)
             ]
         );
-        {
-            let f = h5::File::open_rw(&p).unwrap();
-            f.dataset("events/p")
-                .unwrap()
-                .write_slice(&[7u16], 1..2)
-                .unwrap();
-        }
+        let p = dir.join("polarity.h5");
+        write_columns(&p, &[("x", 3), ("y", 3), ("t", 3), ("p", 3)], Some(7));
         let mut dec = Decoder::open(&p).unwrap();
         let err = dec
             .read_events(&mut Vec::new(), 10)
@@ -781,6 +820,7 @@ mod tests {
         // Cut short: the file's end is gone.
         let p = dir.join("cut.h5");
         let bytes = std::fs::read(dir.join("ok.h5")).unwrap();
+        assert!(bytes.len() > 64);
         std::fs::write(&p, &bytes[..bytes.len() / 2]).unwrap();
         if let Ok(mut dec) = Decoder::open(&p) {
             let mut out = Vec::new();
