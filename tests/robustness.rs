@@ -201,6 +201,48 @@ fn mutations(data: &[u8], rng: &mut Rng, count: usize) -> Vec<(String, Vec<u8>)>
     out
 }
 
+/// `.h5` files made from a clean one (see the call in [`cases`]); returns their names.
+fn forged_h5(dir: &Path, events: &[Event]) -> Vec<String> {
+    let clean = dir.join("forge-clean.h5");
+    write_events(&clean, Format::Hdf5, events);
+    let data = std::fs::read(&clean).unwrap();
+    let mut files = Vec::new();
+    let mut save = |tag: String, bytes: Vec<u8>| {
+        let name = format!("forged-{tag}.h5");
+        std::fs::write(dir.join(&name), bytes).unwrap();
+        files.push(name);
+    };
+    let n = data.len();
+    for k in 1..64 {
+        save(format!("cut{k}"), data[..n * k / 64].to_vec());
+    }
+    let count = events.len() as u64;
+    let fields: [(&str, u64, usize); 4] = [
+        ("count64", count, 8),
+        ("count32", count, 4),
+        ("chunk64", 1 << 16, 8),
+        ("chunk32", 1 << 16, 4),
+    ];
+    for (what, value, width) in fields {
+        let word = &value.to_le_bytes()[..width];
+        let places: Vec<usize> = (0..n.saturating_sub(width))
+            .filter(|&i| &data[i..i + width] == word)
+            .take(12)
+            .collect();
+        for &at in &places {
+            for (j, absurd) in [0u64, 1, 1 << 31, 1 << 40, 1 << 62, u64::MAX]
+                .into_iter()
+                .enumerate()
+            {
+                let mut d = data.clone();
+                d[at..at + width].copy_from_slice(&absurd.to_le_bytes()[..width]);
+                save(format!("{what}-{at}-{j}"), d);
+            }
+        }
+    }
+    files
+}
+
 /// A short recording: a bar sweeping a 64 x 48 sensor, with a Unix-epoch start.
 fn events() -> Vec<Event> {
     let rec = v2ce::sweeping_bar::recording(64, 48, 200_000, 2);
@@ -289,6 +331,10 @@ fn cases(dir: &Path) -> Vec<Case> {
             event_inputs.push(file);
         }
     }
+    // HDF5 forged where it says how much there is: every place the clean file holds the event
+    // count (a dataset's dimensions) or the chunk length as a little-endian word, set to
+    // absurd sizes; and cut at every 64th of its length.
+    event_inputs.extend(forged_h5(dir, &evs));
     // IJRR text and CSV with extreme numbers and absurd lines.
     let texts = [
         ("x1.csv", "t_us,x,y,on\n0,65535,65535,1\n"),

@@ -15,7 +15,10 @@ include!("x86_64.rs");
 #[cfg(all(target_os = "linux", target_arch = "aarch64"))]
 include!("aarch64.rs");
 
-#[cfg(not(all(target_os = "linux", any(target_arch = "x86_64", target_arch = "aarch64"))))]
+#[cfg(not(all(
+    target_os = "linux",
+    any(target_arch = "x86_64", target_arch = "aarch64")
+)))]
 compile_error!(
     "v4l2-sys-mit: bindings are committed for Linux on x86_64 and aarch64 only; run \
      crates/v4l2-sys-mit/generate.sh for this target, or build without the `v4l` feature"
