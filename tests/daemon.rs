@@ -390,7 +390,7 @@ fn the_aps_frames_of_a_real_recording_stream_as_converted() {
     let path =
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/davis346/davis346.aedat4");
     if !path.exists() {
-        eprintln!("SKIPPED: {} is absent", path.display());
+        skipped!("SKIPPED: {} is absent", path.display());
         return;
     }
     let dir = temp_dir("daemon-aps");

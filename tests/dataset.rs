@@ -137,7 +137,7 @@ fn a_recordings_halves_hold_exactly_its_events_in_their_windows() {
     let data = match common::data_dir() {
         Ok(d) => d,
         Err(p) => {
-            eprintln!("SKIPPED: no recordings at {}", p.display());
+            skipped!("SKIPPED: no recordings at {}", p.display());
             return;
         }
     };
@@ -210,6 +210,6 @@ fn a_recordings_halves_hold_exactly_its_events_in_their_windows() {
     if let Some(py) = common::python() {
         numpy_check(&py, &windows[0].0);
     } else {
-        eprintln!("SKIPPED the NumPy check: no Python venv");
+        skipped!("SKIPPED the NumPy check: no Python venv");
     }
 }

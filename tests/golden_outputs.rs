@@ -242,7 +242,7 @@ fn ort_available() -> bool {
             panic!("V2CE_REQUIRE_ORT is set but: {e}")
         }
         Err(e) => {
-            eprintln!("SKIPPED the golden cases of the learned tier: {e}");
+            skipped!("SKIPPED the golden cases of the learned tier: {e}");
             false
         }
     }
@@ -315,7 +315,7 @@ fn outputs_are_byte_identical_to_the_golden_table() {
     let fixture = fixture_video(&dir);
     let data = common::data_dir();
     if let Err(d) = &data {
-        eprintln!(
+        skipped!(
             "SKIPPED the golden cases on recordings: no recordings at {} (set V2CE_DATA)",
             d.display()
         );
@@ -371,7 +371,7 @@ fn outputs_are_byte_identical_to_the_golden_table() {
             Some(h) if *h == hash => {}
             Some(h) => mismatches.push(format!("{name}: expected {h}, got {hash}")),
             None if bless => {}
-            None if case.needs_ort => eprintln!(
+            None if case.needs_ort => skipped!(
                 "SKIPPED {name}: no row for the learned tier on a {} CPU (bless one on such a \
                  machine from a commit whose outputs are known good)",
                 cpu_class()

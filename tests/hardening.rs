@@ -406,7 +406,7 @@ fn bad_frame_rates_and_folders_get_their_own_errors() {
 #[test]
 fn an_unreadable_video_is_one_error_line() {
     if Command::new("ffprobe").arg("-version").output().is_err() {
-        eprintln!("SKIPPED an_unreadable_video_is_one_error_line: no ffprobe");
+        skipped!("SKIPPED an_unreadable_video_is_one_error_line: no ffprobe");
         return;
     }
     let dir = common::temp_dir("hardening-video");

@@ -250,7 +250,7 @@ fn metrics_match_the_report_and_readiness_follows_the_source() {
     }
     // The text parses with prometheus_client's parser, with the families and types expected.
     let Some(py) = common::python() else {
-        eprintln!("SKIPPED the prometheus_client parse: no Python venv (run .ci/run)");
+        skipped!("SKIPPED the prometheus_client parse: no Python venv (run .ci/run)");
         return;
     };
     let out = Command::new(py)
@@ -359,7 +359,7 @@ fn event_pixels(path: &Path) -> (usize, usize, image::RgbImage) {
 #[test]
 fn the_preview_page_shows_the_moving_fixture_in_a_browser() {
     let Some(browser) = chromium() else {
-        eprintln!(
+        skipped!(
             "SKIPPED the_preview_page_shows_the_moving_fixture_in_a_browser: no chromium (apt install chromium)"
         );
         return;

@@ -143,7 +143,7 @@ fn our_decoders_agree_with_faery_on_every_recording() {
         .map(PathBuf::from)
         .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data"));
     if !data.is_dir() {
-        eprintln!(
+        skipped!(
             "SKIPPED our_decoders_agree_with_faery_on_every_recording: no recordings at {}",
             data.display()
         );

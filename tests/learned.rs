@@ -31,7 +31,7 @@ fn ort_available(test: &str) -> bool {
             panic!("V2CE_REQUIRE_ORT is set but: {e}")
         }
         Err(e) => {
-            eprintln!("SKIPPED {test}: {e}");
+            skipped!("SKIPPED {test}: {e}");
             false
         }
     }

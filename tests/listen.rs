@@ -317,7 +317,7 @@ fn listen_gets_every_event_of_the_default_daemon_at_both_sizes() {
     let _one_at_a_time = one_at_a_time();
     let dir = common::temp_dir("listen-sizes");
     let sizes: &[&str] = if cfg!(debug_assertions) {
-        eprintln!("SKIPPED at 640x480: a debug build cannot run it in real time");
+        skipped!("SKIPPED at 640x480: a debug build cannot run it in real time");
         &["346x260"]
     } else {
         &["346x260", "640x480"]

@@ -82,7 +82,7 @@ fn renders_show_events_where_they_fall() {
         if std::env::var_os("CI").is_some() {
             panic!("ffprobe missing in CI");
         }
-        eprintln!("SKIPPED the MP4 part: no ffprobe (apt-get install ffmpeg)");
+        skipped!("SKIPPED the MP4 part: no ffprobe (apt-get install ffmpeg)");
         return;
     }
     run("ev.mp4", &["--fps", "100"]);

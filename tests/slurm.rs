@@ -244,7 +244,7 @@ fn a_slurm_job_array_converts_a_dataset_and_resumes_a_cancelled_task() {
             std::env::var_os("V2CE_REQUIRE_SLURM").is_none(),
             "V2CE_REQUIRE_SLURM is set, but: {why}"
         );
-        eprintln!(
+        skipped!(
             "SKIPPED a_slurm_job_array_converts_a_dataset_and_resumes_a_cancelled_task: {why}"
         );
         return;

@@ -1,6 +1,7 @@
 //! Stage 1, the physics tier: analytic crossing times, extremes, determinism, activity gating,
 //! and the frame sources.
 
+use std::io::Write as _;
 use v2ce::event::Event;
 use v2ce::frame::scene_fn::SceneSource;
 use v2ce::frame::{Frame, FrameSource};
@@ -240,7 +241,7 @@ fn ffmpeg_source_uses_presentation_timestamps() {
         .output()
         .is_ok();
     if !have {
-        eprintln!("SKIPPED ffmpeg_source_uses_presentation_timestamps: no ffmpeg on PATH (apt-get install ffmpeg)");
+        let _ = writeln!(std::io::stderr(),"SKIPPED ffmpeg_source_uses_presentation_timestamps: no ffmpeg on PATH (apt-get install ffmpeg)");
         return;
     }
     let dir = std::env::temp_dir().join(format!("v2ce-ffmpeg-{}", std::process::id()));

@@ -2,6 +2,7 @@
 //! under test, since verify checks that the program exists). Without systemd-analyze the test
 //! prints why it skips, unless `V2CE_REQUIRE_SYSTEMD_ANALYZE` is set (as in CI).
 
+use std::io::Write as _;
 use std::path::Path;
 use std::process::Command;
 
@@ -18,7 +19,10 @@ fn analyzer_or_skip(test: &str) -> bool {
     if std::env::var_os("V2CE_REQUIRE_SYSTEMD_ANALYZE").is_some() {
         panic!("V2CE_REQUIRE_SYSTEMD_ANALYZE is set but systemd-analyze is missing");
     }
-    eprintln!("SKIPPED {test}: systemd-analyze is not installed");
+    let _ = writeln!(
+        std::io::stderr(),
+        "SKIPPED {test}: systemd-analyze is not installed"
+    );
     false
 }
 

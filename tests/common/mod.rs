@@ -2,6 +2,16 @@
 //! (`tests/python/crosscheck.py`): where the interpreter is, temporary folders, receivers.
 #![allow(dead_code)]
 
+/// Prints a test's `SKIPPED ...` line where a plain `cargo test` shows it: on the process's own
+/// standard error, which the test harness does not capture (it captures `eprintln!`).
+#[macro_export]
+macro_rules! skipped {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stderr(), $($arg)*);
+    }};
+}
+
 pub mod batch;
 
 use std::path::{Path, PathBuf};
@@ -32,7 +42,7 @@ macro_rules! python_or_skip {
         match $crate::common::python() {
             Some(p) => p,
             None => {
-                eprintln!(
+                skipped!(
                     "SKIPPED {}: no Python venv with faery/aedat/dv-processing (run .ci/run or set V2CE_PYTHON)",
                     $test
                 );
@@ -128,7 +138,7 @@ macro_rules! data_or_skip {
         match $crate::common::data_dir() {
             Ok(d) => d,
             Err(d) => {
-                eprintln!(
+                skipped!(
                     "SKIPPED {}: no recordings at {} (set V2CE_DATA to the recordings folder)",
                     $test,
                     d.display()
