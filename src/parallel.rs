@@ -1,33 +1,44 @@
-//! Two jobs side by side: the one thread a stage borrows for work that splits in two (the
+//! Two jobs side by side: the helper thread a stage borrows for work that splits in two (the
 //! motion model's forward and backward flows and its sub-frames, the pixel model's bands).
 
-/// Runs `a` here and, when `parallel`, `b` at the same time on a second thread named `name`
-/// (`b` here too, after `a`, where not parallel or no thread can be had), and returns both
-/// results.
+/// Runs `a` here and, when `parallel`, `b` at the same time on one of the process's helper
+/// threads (named `v2ce-helper`, one per core, started on first use and kept: a thread
+/// spawned per call cost ~58 us on the 2-core machine of docs/results.md, more than the
+/// smaller splits save); `b` runs here too, after `a`, where not parallel or no helper
+/// thread can be had. Returns both results; a panic in either is resumed here.
 pub fn side_by_side<A, B: Send>(
-    name: &str,
     parallel: bool,
     a: impl FnOnce() -> A,
     b: impl FnOnce() -> B + Send,
 ) -> (A, B) {
-    if !parallel {
-        return (a(), b());
-    }
-    let b = std::sync::Mutex::new(Some(b));
-    let run_b = || b.lock().ok().and_then(|mut f| f.take()).map(|f| f());
-    std::thread::scope(|scope| {
-        let handle = std::thread::Builder::new()
-            .name(name.into())
-            .spawn_scoped(scope, run_b);
-        let ra = a();
-        let rb = match handle {
-            Ok(h) => h.join().unwrap_or_else(|p| std::panic::resume_unwind(p)),
-            Err(_) => None,
-        };
-        // Not run on the thread (none was had): run here.
-        let rb = rb.or_else(run_b).expect("the second job runs once");
-        (ra, rb)
+    let pool = match helpers() {
+        Some(pool) if parallel => pool,
+        _ => return (a(), b()),
+    };
+    let mut rb = None;
+    let ra = pool.in_place_scope(|scope| {
+        let slot = &mut rb;
+        scope.spawn(move |_| *slot = Some(b()));
+        a()
+    });
+    // The scope returns once the spawned job has run (or resumes its panic).
+    let rb = rb.expect("the second job runs once");
+    (ra, rb)
+}
+
+/// The helper threads, started once (none where the system gives no thread).
+fn helpers() -> Option<&'static rayon::ThreadPool> {
+    static POOL: std::sync::OnceLock<Option<rayon::ThreadPool>> = std::sync::OnceLock::new();
+    POOL.get_or_init(|| {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(cores.max(1))
+            .thread_name(|_| "v2ce-helper".into())
+            .build()
+            .map_err(|e| tracing::warn!("no helper threads ({e}): split work runs on one thread"))
+            .ok()
     })
+    .as_ref()
 }
 
 /// Where to cut items of these amounts of `work` in two: the most leading items whose work is
@@ -71,12 +82,7 @@ mod tests {
     fn both_jobs_run_and_return() {
         for parallel in [false, true] {
             let here = std::thread::current().id();
-            let (a, (b, there)) = side_by_side(
-                "v2ce-test",
-                parallel,
-                || 1,
-                || (2, std::thread::current().id()),
-            );
+            let (a, (b, there)) = side_by_side(parallel, || 1, || (2, std::thread::current().id()));
             assert_eq!((a, b), (1, 2));
             assert_eq!(there == here, !parallel);
         }

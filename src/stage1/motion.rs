@@ -310,7 +310,6 @@ impl Subframes {
             }
         };
         side_by_side(
-            "v2ce-flow",
             total >= PARALLEL_PIXELS,
             || make(first, 0),
             || make(second, split),
@@ -432,7 +431,6 @@ impl Subframes {
         let (p0, p1) = (&*p0, &*p1);
         let parallel = region_pixels >= PARALLEL_PIXELS;
         let (forward, backward) = side_by_side(
-            "v2ce-flow",
             parallel,
             || flow.compute_on(p0, p1, Some(region), f01),
             || back.compute_on(p1, p0, Some(region), f10),
@@ -461,7 +459,6 @@ impl Subframes {
             } = self;
             let (f01, f10, region) = (&*f01, &*f10, &*region);
             side_by_side(
-                "v2ce-flow",
                 parallel,
                 || consistent(f01, f10, w, h, region, ok0),
                 || consistent(f10, f01, w, h, region, ok1),

@@ -172,12 +172,7 @@ impl PhysicsSim {
             stats: PhysicsStats::default(),
         };
         spill.clear();
-        crate::parallel::side_by_side(
-            "v2ce-pixels",
-            parallel,
-            || a.run(passes, out),
-            || b.run(passes, spill),
-        );
+        crate::parallel::side_by_side(parallel, || a.run(passes, out), || b.run(passes, spill));
         stats.add(a.stats);
         stats.add(b.stats);
         out.append(spill);

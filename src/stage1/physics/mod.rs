@@ -173,7 +173,8 @@ fn quantization_step(luma: &[u16]) -> u16 {
 /// scene light model: at least `MIN_STEPS` of the source's quantization steps.
 fn scene_mean(frame: &Frame) -> Option<f64> {
     let n = frame.luma.len().max(1);
-    let mean = frame.luma.iter().map(|&v| v as f64).sum::<f64>() / n as f64;
+    // Summed as integers (exact, and on vectors): a frame's sum fits in u64 by far.
+    let mean = frame.luma.iter().map(|&v| u64::from(v)).sum::<u64>() as f64 / n as f64;
     (mean >= MIN_STEPS * quantization_step(&frame.luma) as f64).then_some(mean / FULL_SCALE as f64)
 }
 
