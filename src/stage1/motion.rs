@@ -85,8 +85,11 @@ const EXPLAINED: f64 = 0.85;
 const MIN_TRUSTED: f64 = 0.15;
 /// Frames smaller than this on either side get no flow (DIS's patches and pyramid need room).
 const MIN_SIDE: u16 = 16;
-/// In a live run, the share of the frame interval Stage 1 may spend before the cap falls.
-const LIVE_SHARE: f64 = 0.6;
+/// In a live run, the share of the frame interval Stage 1 may spend (smoothed) before the cap
+/// falls. Stage 1 keeps up with the frames while it takes less than the frame interval; the
+/// rest is the margin for a slower interval (the queues, four frames deep, absorb a few) and
+/// for the threads beside it, whose contention its wall time already shows.
+const LIVE_SHARE: f64 = 0.8;
 /// Intervals well inside the budget (under half of it) before the cap rises by one; doubled
 /// (up to `MAX_CALM_INTERVALS`) each time a raise has to be taken back within that many.
 const CALM_INTERVALS: u32 = 30;
@@ -575,10 +578,11 @@ pub struct Subframed {
     pub steps: Vec<u8>,
 }
 
-/// Keeps a live run's sub-frame cap where Stage 1 keeps up with the frames: the cap halves
+/// Keeps a live run's sub-frame cap where Stage 1 keeps up with the frames: the cap falls
 /// when the time per interval stepped through sub-frames, smoothed over a few of them, passes
-/// `LIVE_SHARE` of the interval's wall time, and rises by one after `CALM_INTERVALS` intervals
-/// under half of that. An interval stepped without sub-frames (nothing moved, or a scene cut
+/// `LIVE_SHARE` of the interval's wall time (in proportion to the overshoot: by one at least,
+/// to half at most in one step, so a pan that needs a little less keeps most of its
+/// sub-frames), and rises by one after `CALM_INTERVALS` intervals under half of that. An interval stepped without sub-frames (nothing moved, or a scene cut
 /// or a change of light that fell back to linear) costs the same at any cap: it does not
 /// lower the cap, and counts as calm when it took under half the budget. A raise taken back
 /// soon after doubles the wait before the next (a machine that cannot afford the flow at all
@@ -637,7 +641,10 @@ impl Governor {
             }
         }
         if self.samples >= SETTLE_INTERVALS && self.smoothed > budget && cap > 1 {
-            let lowered = (cap / 2).max(1);
+            // Time falls at most in proportion to the cap (a part of it, the frame's own
+            // step, does not depend on it): lower by the overshoot, then again if needed.
+            let fits = (f64::from(cap) * budget / self.smoothed).floor() as u32;
+            let lowered = fits.clamp((cap / 2).max(1), cap - 1);
             if self.since_raise.take().is_some() {
                 self.wait = (self.wait * 2).min(MAX_CALM_INTERVALS);
             }
@@ -1065,9 +1072,10 @@ mod tests {
         assert_eq!(sub.stats().cap, 5);
     }
 
-    /// A live run that cannot keep up halves the cap, down to linear interpolation, and says
-    /// so in its counters; with time to spare it raises the cap again, one step at a time, and
-    /// a raise taken back doubles the wait before the next.
+    /// A live run that cannot keep up lowers the cap, by the overshoot (by one at least, to
+    /// half at most in one step), down to linear interpolation, and says so in its counters;
+    /// with time to spare it raises the cap again, one step at a time, and a raise taken back
+    /// doubles the wait before the next.
     #[test]
     fn a_live_run_lowers_the_cap_to_keep_up() {
         let mut sub = Subframes::new(DIS_FAST, 1.0, 8, W, H).unwrap();
@@ -1075,14 +1083,22 @@ mod tests {
         sub.spent(1.0, 33_333, true);
         assert_eq!(sub.stats().cap, 8);
         sub.pace(1.0);
-        // One slow interval is not enough; a run of them is.
+        // One slow interval is not enough; a run of them is. A little over the budget (26.7
+        // ms of a 33.3 ms frame) lowers the cap a little: 30 ms at 8 fit 8 x 26.7 / 30 = 7.1.
         let mut caps = Vec::new();
-        for _ in 0..3 * SETTLE_INTERVALS {
+        for _ in 0..2 * SETTLE_INTERVALS {
             sub.spent(0.030, 33_333, true);
             caps.push(sub.stats().cap);
         }
-        assert_eq!(caps, [8, 8, 4, 4, 4, 2, 2, 2, 1]);
-        assert_eq!(sub.stats().cap_lowered, 3);
+        assert_eq!(caps, [8, 8, 7, 7, 7, 6]);
+        // Far over it, to half at most per step.
+        caps.clear();
+        for _ in 0..2 * SETTLE_INTERVALS {
+            sub.spent(0.100, 33_333, true);
+            caps.push(sub.stats().cap);
+        }
+        assert_eq!(caps, [6, 6, 3, 3, 3, 1]);
+        assert_eq!(sub.stats().cap_lowered, 4);
         let calm = |sub: &mut Subframes, n: u32| {
             for _ in 0..n {
                 sub.spent(0.001, 33_333, true);
@@ -1092,7 +1108,7 @@ mod tests {
         assert_eq!(sub.stats().cap, 2);
         // Too slow at 2: back to 1, and the next raise waits twice as long.
         for _ in 0..SETTLE_INTERVALS {
-            sub.spent(0.030, 33_333, true);
+            sub.spent(0.040, 33_333, true);
         }
         assert_eq!(sub.stats().cap, 1);
         calm(&mut sub, CALM_INTERVALS);
