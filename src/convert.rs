@@ -244,13 +244,20 @@ impl VoxelTap {
             if *self.shape.get_or_insert(shape) != shape {
                 return Err(Error::invalid("--write-voxels", "the voxel size changed"));
             }
-            let mut bytes = Vec::new();
-            for v in grid.to_dense() {
-                bytes.extend_from_slice(&v.to_le_bytes());
+            let (c, h, w) = shape;
+            let dense_bytes = 4 * c as u64 * u64::from(h) * u64::from(w);
+            crate::limits::memory("--write-voxels", dense_bytes, "one interval's dense voxels")?;
+            // Written a slice at a time: no second copy of the tensor as bytes.
+            let mut bytes = Vec::with_capacity(4 << 16);
+            for chunk in grid.to_dense().chunks(1 << 16) {
+                bytes.clear();
+                chunk
+                    .iter()
+                    .for_each(|v| bytes.extend_from_slice(&v.to_le_bytes()));
+                self.file
+                    .write_all(&bytes)
+                    .map_err(|e| Error::io(&self.partial, e))?;
             }
-            self.file
-                .write_all(&bytes)
-                .map_err(|e| Error::io(&self.partial, e))?;
             self.intervals += 1;
         }
         Ok(())

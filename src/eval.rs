@@ -225,9 +225,32 @@ pub fn stage1(
     intervals: &[Interval],
     size: (u16, u16),
 ) -> Result<Stage1Report> {
-    let voxels = crate::metrics::stage1::score(real, sim, intervals, size.0, size.1, DEFAULT_BINS)?;
+    stage1_with(real, sim, intervals, size, &|| Ok(()))
+}
+
+/// [`stage1`], calling `tick` between chunks of intervals: its error (an interrupt) ends the
+/// scoring.
+pub fn stage1_with(
+    real: &[Event],
+    sim: &[Event],
+    intervals: &[Interval],
+    size: (u16, u16),
+    tick: &dyn Fn() -> Result<()>,
+) -> Result<Stage1Report> {
+    let voxels = crate::metrics::stage1::score_with(
+        real,
+        sim,
+        intervals,
+        size.0,
+        size.1,
+        DEFAULT_BINS,
+        tick,
+    )?;
     let mut scorer = Stage2Scorer::new();
-    for iv in intervals {
+    for (i, iv) in intervals.iter().enumerate() {
+        if i % 1024 == 0 {
+            tick()?;
+        }
         scorer.add_interval(
             *iv,
             time_slice(real, iv.start(), iv.end()),

@@ -14,16 +14,18 @@ pub struct Interval {
 }
 
 impl Interval {
-    /// Creates `[start, end)`; fails unless `end > start`.
+    /// Creates `[start, end)`; fails unless `end > start`, both lie within
+    /// `±`[`crate::time::MAX_ABS_US`] and the span is at most [`crate::time::MAX_SPAN_US`] (so
+    /// that its length, and any offset in it, is exact as an `f64`).
     pub fn new(start: i64, end: i64) -> Result<Self> {
-        if end > start {
-            Ok(Interval { start, end })
-        } else {
-            Err(Error::invalid(
+        if end <= start {
+            return Err(Error::invalid(
                 "interval",
                 format!("end {end} us is not after start {start} us"),
-            ))
+            ));
         }
+        crate::time::span("interval", start, end)?;
+        Ok(Interval { start, end })
     }
 
     /// First microsecond of the interval.
@@ -69,7 +71,11 @@ pub fn intervals_from_frames(frame_times: &[i64]) -> Result<Vec<Interval>> {
         .windows(2)
         .enumerate()
         .map(|(i, w)| {
-            Interval::new(w[0], w[1]).map_err(|_| {
+            Interval::new(w[0], w[1]).map_err(|e| {
+                if w[1] > w[0] {
+                    // Far enough apart to be out of range: say so.
+                    return e;
+                }
                 Error::invalid(
                     "frame times",
                     format!(
@@ -101,6 +107,9 @@ pub fn fixed_intervals(first: i64, last: i64, fps: f64) -> Result<Vec<Interval>>
     if last < first {
         return Ok(Vec::new());
     }
+    // Both in range, so the span and every boundary up to one period past `last` fit.
+    crate::time::check("first time", first)?;
+    crate::time::check("last time", last)?;
     let period = 1e6 / fps;
     crate::limits::intervals("fps", ((last as f64 - first as f64) / period).floor() + 1.0)?;
     let boundary = |i: u64| first + (i as f64 * period).floor() as i64;

@@ -40,6 +40,7 @@ pub mod stage1;
 pub mod stage2;
 pub(crate) mod stats;
 pub mod sweeping_bar;
+pub mod time;
 pub(crate) mod toml_doc;
 pub(crate) mod tradeoff;
 pub(crate) mod transcode;

@@ -123,6 +123,8 @@ pub fn render(input: &Path, output: &Path, options: &RenderOptions) -> Result<Re
             format!("{} (must be in (0, 10000])", options.fps),
         ));
     }
+    // The lowest rate too: a frame period any time in range can be added to.
+    crate::limits::frame_rate("fps", options.fps)?;
     if !(options.slowdown.is_finite() && options.slowdown > 0.0) {
         return Err(Error::invalid("slowdown", "must be positive"));
     }
@@ -194,9 +196,15 @@ pub fn render(input: &Path, output: &Path, options: &RenderOptions) -> Result<Re
                 canvas.add(e);
                 continue;
             }
-            let end = *frame_end.get_or_insert(e.t + period);
+            let end = match frame_end {
+                Some(end) => end,
+                None => *frame_end.insert(crate::time::checked_add("frame end", e.t, period)?),
+            };
             if e.t >= end {
-                // Close every frame up to the one this event falls in (empty ones too).
+                // Close every frame up to the one this event falls in (empty ones too): as
+                // many frames as one run takes at most (times are in range: no wrap).
+                let closing = (e.t - end) / period + 1;
+                crate::limits::intervals("render --fps", report.frames as f64 + closing as f64)?;
                 let mut end = end;
                 while e.t >= end {
                     emit(&canvas, end, &mut out, &mut report)?;

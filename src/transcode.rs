@@ -24,7 +24,7 @@ pub struct TranscodeReport {
 /// The sensor size to write: `size`, else the input's, else one more than the largest column
 /// and row in the input (found by a first streaming pass).
 fn output_size(input: &Path, size: Option<(u16, u16)>) -> Result<(u16, u16)> {
-    match size.or(format::open(input)?.size()) {
+    match size.or(format::open_verbatim(input)?.size()) {
         Some(s) => Ok(s),
         // The pass that writes reads the same input and gives its warnings: this one keeps quiet.
         None => Ok(tracing::subscriber::with_default(Quiet, || summarize(input))?.extent),
@@ -70,7 +70,7 @@ pub fn transcode(
         ));
     }
     let size = output_size(input, size)?;
-    let mut decoder = format::open(input)?;
+    let mut decoder = format::open_verbatim(input)?;
     let out = format::PartialOutput::new(output);
     let report = write_all(input, decoder.as_mut(), out.writing(), format, size)
         .and_then(|r| out.commit().map(|()| r));
@@ -264,7 +264,7 @@ impl std::fmt::Display for Summary {
 
 /// Reads an event file through once and summarizes it.
 pub fn summarize(path: &Path) -> Result<Summary> {
-    let mut decoder = format::open(path)?;
+    let mut decoder = format::open_verbatim(path)?;
     let mut s = Summary {
         size: decoder.size(),
         extent: (0, 0),

@@ -120,9 +120,34 @@ impl VoxelGrid {
                 format!("{} values for {} bins", values.len(), self.bins),
             ));
         }
+        self.room_for_one()?;
         self.cells.push(self.cell_id(x, y, on));
         self.values.extend_from_slice(values);
         Ok(())
+    }
+
+    /// Room for one more cell, or a clear error where the memory cannot be had (a grid holds
+    /// up to `2 x W x H` cells of `bins` values: 2.7 GB at 4096 x 4096 and 10 bins).
+    fn room_for_one(&mut self) -> Result<()> {
+        let (w, h, n) = (self.width, self.height, self.cells.len());
+        let full = |e: std::collections::TryReserveError| {
+            Error::invalid(
+                "voxel grid",
+                format!("{w} x {h} with {n} active cells: no memory for more ({e})"),
+            )
+        };
+        if self.cells.len() == self.cells.capacity() {
+            let more = self.cells.len().max(1024);
+            self.cells.try_reserve(more).map_err(full)?;
+            self.values.try_reserve(more * self.bins).map_err(full)?;
+        }
+        Ok(())
+    }
+
+    /// The most bytes a `width x height` grid with `bins` nodes holds (every cell of both
+    /// polarities active).
+    pub fn max_bytes(width: u16, height: u16, bins: usize) -> u64 {
+        2 * u64::from(width) * u64::from(height) * (4 + 8 * bins as u64)
     }
 
     /// Node `c` of the cell at (`x`, `y`, `on`), 0 where the cell is inactive.
@@ -181,6 +206,7 @@ impl VoxelGrid {
                     *n = v as f64;
                 }
                 if any {
+                    grid.room_for_one()?;
                     grid.cells.push((p * hw + pix) as u32);
                     grid.values.extend_from_slice(&node);
                 }
@@ -263,6 +289,10 @@ impl Voxelizer {
             let id = grid.cell_id(e.x, e.y, e.on) as usize;
             let slot = match self.slot[id] {
                 u32::MAX => {
+                    if let Err(e) = grid.room_for_one() {
+                        result = Err(e);
+                        break;
+                    }
                     let s = grid.cells.len() as u32;
                     self.slot[id] = s;
                     grid.cells.push(id as u32);

@@ -238,3 +238,59 @@ fn one_task_per_shard_at_a_time() {
     assert_eq!(o.status.code(), Some(1), "{}", text(&o));
     assert!(text(&o).contains("already running"), "{}", text(&o));
 }
+
+/// Outputs are checked before anything is written: one inside the ledgers' folder (as written,
+/// or through a link) is refused and the ledger left whole; `x` and `./x` are one output; a
+/// ledger whose last line was cut inside a character does not stop the next run from resuming.
+#[test]
+fn outputs_are_checked_and_a_cut_ledger_resumes() {
+    let dir = common::temp_dir("batch-outputs");
+    dataset(&dir, 2, 64, 48, |_| 8);
+    let o = v2ce(&["batch", "list.txt", "--out", "out"], &dir);
+    let log = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{log}");
+    assert!(log.contains("2 converted"), "{log}");
+    let ledger_file = dir.join("out/.v2ce-batch/shard-0-of-1.jsonl");
+    let before = std::fs::read(&ledger_file).unwrap();
+    std::os::unix::fs::symlink(".v2ce-batch", dir.join("out/link")).unwrap();
+    for (list, expect) in [
+        (
+            "clips/c0.y4m output=./.v2ce-batch/shard-0-of-1.jsonl\n",
+            "folder the batch keeps for its ledgers",
+        ),
+        (
+            "clips/c0.y4m output=link/shard-0-of-1.jsonl\n",
+            "folder of the batch's ledgers",
+        ),
+        (
+            "clips/c0.y4m output=x.aedat4\nclips/c1.y4m output=./x.aedat4\n",
+            "would both write",
+        ),
+        (
+            "clips/c0.y4m output=x.aedat4\nclips/c1.y4m output=d/../x.aedat4\n",
+            "would both write",
+        ),
+    ] {
+        std::fs::write(dir.join("bad.txt"), list).unwrap();
+        let o = v2ce(&["batch", "bad.txt", "--out", "out"], &dir);
+        let log = text(&o);
+        assert_eq!(o.status.code(), Some(1), "{list}: {log}");
+        assert!(log.contains(expect), "{list}: {log}");
+        assert_eq!(std::fs::read(&ledger_file).unwrap(), before, "{list}");
+    }
+    // A task killed while writing a record with an 'é': the line is cut inside it.
+    let mut cut = before.clone();
+    cut.extend_from_slice(b"{\"input\": \"clips/caf\xc3");
+    std::fs::write(&ledger_file, &cut).unwrap();
+    let o = v2ce(&["batch", "list.txt", "--out", "out"], &dir);
+    let log = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{log}");
+    assert!(
+        log.contains("2 skipped") && log.contains("not UTF-8"),
+        "{log}"
+    );
+    let o = v2ce(&["batch", "--report", "out", "list.txt", "--json"], &dir);
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(r["done"], 2, "{}", text(&o));
+    assert_eq!(r["failed"].as_array().unwrap().len(), 1);
+}

@@ -24,6 +24,8 @@ const MEMORY_CAP: u64 = 3 << 30;
 const MAX_RSS_KIB: i64 = 2 << 20;
 /// Wall-clock limit of each run (generous: the cases share two cores).
 const TIME_LIMIT: Duration = Duration::from_secs(60);
+/// How long a run past the time limit may take to stop on one SIGTERM.
+const STOP_BUDGET: Duration = Duration::from_secs(5);
 
 /// One generated case: a command line run in `dir`, and the output file to read back when it
 /// succeeds.
@@ -38,6 +40,8 @@ struct Outcome {
     code: Option<i32>,
     signal: Option<i32>,
     timed_out: bool,
+    /// After the time limit: whether the run ignored one SIGTERM for `STOP_BUDGET`.
+    ignored_sigterm: Option<bool>,
     max_rss_kib: i64,
     stderr: String,
     seconds: f64,
@@ -74,6 +78,7 @@ fn run_capped(args: &[String], dir: &Path, tag: &str) -> Outcome {
     let mut status = 0;
     let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
     let mut timed_out = false;
+    let mut ignored_sigterm = None;
     loop {
         let r = unsafe { libc::wait4(pid, &mut status, libc::WNOHANG, &mut usage) };
         if r == pid {
@@ -82,6 +87,20 @@ fn run_capped(args: &[String], dir: &Path, tag: &str) -> Outcome {
         assert!(r == 0, "wait4: {}", std::io::Error::last_os_error());
         if started.elapsed() > TIME_LIMIT {
             timed_out = true;
+            // One SIGTERM first: a run that hangs must still stop on it (its stop budget).
+            unsafe { libc::kill(pid, libc::SIGTERM) };
+            let asked = Instant::now();
+            while asked.elapsed() < STOP_BUDGET {
+                if unsafe { libc::wait4(pid, &mut status, libc::WNOHANG, &mut usage) } == pid {
+                    ignored_sigterm = Some(false);
+                    break;
+                }
+                std::thread::sleep(Duration::from_millis(5));
+            }
+            if ignored_sigterm.is_some() {
+                break;
+            }
+            ignored_sigterm = Some(true);
             unsafe { libc::kill(pid, libc::SIGKILL) };
             let r = unsafe { libc::wait4(pid, &mut status, 0, &mut usage) };
             assert_eq!(r, pid);
@@ -100,6 +119,7 @@ fn run_capped(args: &[String], dir: &Path, tag: &str) -> Outcome {
         code,
         signal,
         timed_out,
+        ignored_sigterm,
         max_rss_kib: usage.ru_maxrss,
         stderr: std::fs::read_to_string(&err_path).unwrap_or_default(),
         seconds: started.elapsed().as_secs_f64(),
@@ -109,7 +129,11 @@ fn run_capped(args: &[String], dir: &Path, tag: &str) -> Outcome {
 /// What is wrong with an outcome, if anything.
 fn judge(case: &Case, o: &Outcome, dir: &Path) -> Option<String> {
     if o.timed_out {
-        return Some(format!("no exit within {TIME_LIMIT:?}"));
+        let term = match o.ignored_sigterm {
+            Some(true) => format!("; one SIGTERM ignored for {STOP_BUDGET:?}"),
+            _ => "; stopped on one SIGTERM".to_string(),
+        };
+        return Some(format!("no exit within {TIME_LIMIT:?}{term}"));
     }
     if let Some(sig) = o.signal {
         return Some(format!("killed by signal {sig}"));
@@ -764,6 +788,125 @@ fn cases(dir: &Path) -> Vec<Case> {
         }
     }
     cases.extend(sizes_and_times(dir, &mut rng));
+    cases.extend(extreme_times(dir, &mut rng));
+    cases
+}
+
+/// Times as text (seconds for frame lists, microseconds for events): the ends of `i64` and of
+/// the range the program takes (2^61 us), spans just past what an `f64` holds exactly (2^53
+/// us), what a float cast makes of NaN and infinities, equal and decreasing times.
+const EXTREME_SECONDS: [(&str, &str); 12] = [
+    ("-9223372036854", "9223372036854"),
+    ("-9223372036855", "0"),
+    ("0", "9223372036854.775807"),
+    ("0", "9007199254.740993"),
+    ("2305843009213.693952", "2305843009213.693953"),
+    ("nan", "1"),
+    ("0", "inf"),
+    ("-inf", "0"),
+    ("1e300", "2e300"),
+    ("5", "5"),
+    ("5", "4"),
+    ("0", "0.0000001"),
+];
+
+/// Extreme times (issue 36) through every command that takes them: frame lists through
+/// `convert` and `calibrate`, event files and frame times through `eval stage1`, `eval stage2`
+/// (`--frames`, `--fps`) and `render --fps`, and event files with any `i64` time through
+/// `transcode` and `info`, which only carry them.
+fn extreme_times(dir: &Path, rng: &mut Rng) -> Vec<Case> {
+    let mut cases = Vec::new();
+    let gray = |v: u8| {
+        image::GrayImage::from_fn(16, 12, |x, _| image::Luma([v.wrapping_add(x as u8 * 9)]))
+    };
+    std::fs::write(dir.join("near.csv"), "t_us,x,y,on\n100,1,1,1\n200,2,2,0\n").unwrap();
+    for (i, (a, b)) in EXTREME_SECONDS.iter().enumerate() {
+        let folder = dir.join(format!("times{i}"));
+        std::fs::create_dir_all(&folder).unwrap();
+        gray(10).save(folder.join("a.png")).unwrap();
+        gray(200).save(folder.join("b.png")).unwrap();
+        std::fs::write(folder.join("images.txt"), format!("{a} a.png\n{b} b.png\n")).unwrap();
+        let list = format!("times{i}/images.txt");
+        for args in [
+            strings(&["convert", &list, "-o", &format!("times{i}.csv")]),
+            strings(&[
+                "calibrate",
+                "--real",
+                "near.csv",
+                "--frames",
+                &list,
+                "-o",
+                &format!("times{i}.toml"),
+            ]),
+            strings(&["eval", "stage2", "--events", "near.csv", "--frames", &list]),
+            strings(&[
+                "eval", "stage1", "--real", "near.csv", "--sim", "near.csv", "--frames", &list,
+            ]),
+        ] {
+            cases.push(Case {
+                name: format!("{} with frames at {a} s and {b} s", args[..2].join(" ")),
+                args,
+                check_output: None,
+            });
+        }
+    }
+    let ends = [
+        i64::MIN,
+        i64::MIN + 1,
+        -(1 << 61) - 1,
+        -(1 << 61),
+        -(1 << 53),
+        0,
+        1 << 53,
+        (1 << 61) + 1,
+        i64::MAX - 5,
+        i64::MAX,
+    ];
+    for i in 0..16 {
+        let mut t: Vec<i64> = (0..2).map(|_| ends[rng.below(ends.len())]).collect();
+        t.sort();
+        let file = format!("ends{i}.csv");
+        let csv: String = std::iter::once("t_us,x,y,on\n".to_string())
+            .chain(t.iter().map(|t| format!("{t},1,1,1\n")))
+            .collect();
+        std::fs::write(dir.join(&file), csv).unwrap();
+        for (args, out) in [
+            (
+                strings(&["eval", "stage2", "--events", &file, "--fps", "30"]),
+                None,
+            ),
+            (
+                strings(&[
+                    "eval", "stage1", "--real", &file, "--sim", &file, "--fps", "30",
+                ]),
+                None,
+            ),
+            (
+                strings(&[
+                    "render",
+                    &file,
+                    "--size",
+                    "8x8",
+                    "--fps",
+                    "30",
+                    "-o",
+                    &format!("ends{i}.gif"),
+                ]),
+                None,
+            ),
+            (strings(&["info", &file]), None),
+            (
+                strings(&["transcode", &file, &format!("ends{i}.raw"), "--size", "8x8"]),
+                Some(format!("ends{i}.raw")),
+            ),
+        ] {
+            cases.push(Case {
+                name: format!("{} with events at {t:?} us", args[..2].join(" ")),
+                args,
+                check_output: out,
+            });
+        }
+    }
     cases
 }
 

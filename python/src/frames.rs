@@ -135,6 +135,10 @@ impl<'py> FramesView<'py> {
                 times[k]
             )));
         }
+        crate::times_in_range("times_us", &times)?;
+        for p in times.windows(2) {
+            v2ce::time::span("times_us", p[0], p[1]).map_err(crate::py_err)?;
+        }
         let (width, height) = sensor(w, h)?;
         if let Pixels::F32(v) = self.pixels()? {
             if let Some(bad) = v.iter().position(|p| !p.is_finite()) {

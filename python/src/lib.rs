@@ -38,7 +38,7 @@ type EventsAndSize<'py> = (Bound<'py, PyArray1<u8>>, (u16, u16));
 const RECORD: usize = 16;
 
 /// The library's error as the Python exception a caller expects, with the CLI's message.
-fn py_err(e: Error) -> PyErr {
+pub(crate) fn py_err(e: Error) -> PyErr {
     let message = e.to_string();
     match e {
         Error::Io { .. } => PyOSError::new_err(message),
@@ -81,8 +81,18 @@ fn records<'py>(py: Python<'py>, bytes: Vec<u8>) -> Bound<'py, PyArray1<u8>> {
     PyArray1::from_vec(py, bytes)
 }
 
-/// A TOML value from a Python one (str, bool, int, float, dict, list).
-fn toml_value(v: &Bound<'_, PyAny>, key: &str) -> PyResult<toml::Value> {
+/// How deep settings may nest (tables and lists in each other): the configuration's own
+/// tables are two deep; a recursive or absurdly deep value is refused, not followed.
+const MAX_SETTINGS_DEPTH: usize = 32;
+
+/// A TOML value from a Python one (str, bool, int, float, dict, list), `depth` tables or lists
+/// down.
+fn toml_value(v: &Bound<'_, PyAny>, key: &str, depth: usize) -> PyResult<toml::Value> {
+    if depth > MAX_SETTINGS_DEPTH {
+        return Err(PyValueError::new_err(format!(
+            "{key}: settings nested more than {MAX_SETTINGS_DEPTH} deep (a value that contains itself?)"
+        )));
+    }
     // bool before int: Python's bool is an int.
     if v.is_instance_of::<PyBool>() {
         return Ok(toml::Value::Boolean(v.extract()?));
@@ -100,12 +110,12 @@ fn toml_value(v: &Bound<'_, PyAny>, key: &str) -> PyResult<toml::Value> {
         return Ok(toml::Value::String(v.extract()?));
     }
     if let Ok(d) = v.cast::<PyDict>() {
-        return Ok(toml::Value::Table(toml_table(d)?));
+        return Ok(toml::Value::Table(toml_table(d, depth + 1)?));
     }
     if let Ok(l) = v.cast::<PyList>() {
         return l
             .iter()
-            .map(|item| toml_value(&item, key))
+            .map(|item| toml_value(&item, key, depth + 1))
             .collect::<PyResult<Vec<_>>>()
             .map(toml::Value::Array);
     }
@@ -118,14 +128,19 @@ fn toml_value(v: &Bound<'_, PyAny>, key: &str) -> PyResult<toml::Value> {
     )))
 }
 
-fn toml_table(d: &Bound<'_, PyDict>) -> PyResult<toml::Table> {
+fn toml_table(d: &Bound<'_, PyDict>, depth: usize) -> PyResult<toml::Table> {
+    if depth > MAX_SETTINGS_DEPTH {
+        return Err(PyValueError::new_err(format!(
+            "settings nested more than {MAX_SETTINGS_DEPTH} deep (a value that contains itself?)"
+        )));
+    }
     let mut t = toml::Table::new();
     for (k, v) in d.iter() {
         let key: String = k.extract()?;
         if v.is_none() {
             continue;
         }
-        t.insert(key.clone(), toml_value(&v, &key)?);
+        t.insert(key.clone(), toml_value(&v, &key, depth)?);
     }
     Ok(t)
 }
@@ -155,7 +170,7 @@ fn configuration(config: Option<PathBuf>, settings: &Bound<'_, PyDict>) -> PyRes
         }
         None => (toml::Table::new(), PathBuf::from("the arguments")),
     };
-    merge(&mut table, toml_table(settings)?);
+    merge(&mut table, toml_table(settings, 0)?);
     let text = toml::to_string(&table).map_err(|e| PyValueError::new_err(e.to_string()))?;
     Config::parse(&text, &origin).map_err(py_err)
 }
@@ -192,6 +207,31 @@ impl Sink for Collect {
     fn is_recording(&self) -> bool {
         true
     }
+}
+
+/// Runs `work` with the GIL released. `work` calls the `tick` it is given between units of
+/// work: once Ctrl-C has been pressed the tick fails, `work` ends with that error, and the call
+/// raises `KeyboardInterrupt`.
+fn detached<T: Send>(
+    py: Python<'_>,
+    what: &str,
+    work: impl FnOnce(&(dyn Fn() -> v2ce::Result<()> + Sync)) -> PyResult<T> + Send,
+) -> PyResult<T> {
+    let interrupted = AtomicBool::new(false);
+    let tick = || -> v2ce::Result<()> {
+        if Python::attach(|py| py.check_signals().is_err()) {
+            interrupted.store(true, Ordering::Relaxed);
+            return Err(Error::Run(format!("{what} interrupted")));
+        }
+        Ok(())
+    };
+    let result = py.detach(|| work(&tick));
+    if interrupted.load(Ordering::Relaxed) {
+        return Err(PyKeyboardInterrupt::new_err(format!(
+            "v2ce.{what} interrupted"
+        )));
+    }
+    result
 }
 
 /// Runs a conversion of `source` with the GIL released, checking for Ctrl-C between ticks;
@@ -390,43 +430,45 @@ impl Simulator {
     ) -> PyResult<Bound<'py, PyArray1<u8>>> {
         guarded("Simulator.push", || {
             let frame = frames::one_frame(frame, t_us, (self.width, self.height), self.linear)?;
-            let mut s = self.inner.lock().unwrap_or_else(|e| e.into_inner());
-            if s.finished {
-                return Err(PyValueError::new_err("push after finish()"));
-            }
-            if let Some(last) = s.last_t {
-                if t_us <= last {
-                    return Err(PyValueError::new_err(format!(
-                        "frame at {t_us} us does not come after the previous one at {last} us"
-                    )));
+            v2ce::time::check("t_us", t_us).map_err(py_err)?;
+            // The simulator's lock is taken with the GIL released: a thread waiting for it
+            // holds nothing another thread needs (pushes from several threads take turns).
+            let bytes = py.detach(|| -> PyResult<Vec<u8>> {
+                let mut s = self.inner.lock().unwrap_or_else(|e| e.into_inner());
+                if s.finished {
+                    return Err(PyValueError::new_err("push after finish()"));
                 }
-            }
-            let s: &mut Streaming = &mut s;
-            let bytes = py.detach(|| -> v2ce::Result<Vec<u8>> {
+                if let Some(last) = s.last_t {
+                    if t_us <= last {
+                        return Err(PyValueError::new_err(format!(
+                            "frame at {t_us} us does not come after the previous one at {last} us"
+                        )));
+                    }
+                    v2ce::time::span("t_us", last, t_us).map_err(py_err)?;
+                }
                 let mut batches = Vec::new();
-                s.stage1.push(&frame, &mut batches)?;
+                s.stage1.push(&frame, &mut batches).map_err(py_err)?;
                 s.last_t = Some(t_us);
                 Ok(pack(&s.events(batches)))
-            });
-            Ok(records(py, bytes.map_err(py_err)?))
+            })?;
+            Ok(records(py, bytes))
         })
     }
 
     /// What Stage 1 still holds (the learned tier's last window); no frame may follow.
     fn finish<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray1<u8>>> {
         guarded("Simulator.finish", || {
-            let mut s = self.inner.lock().unwrap_or_else(|e| e.into_inner());
-            if s.finished {
-                return Ok(records(py, Vec::new()));
-            }
-            s.finished = true;
-            let s: &mut Streaming = &mut s;
-            let bytes = py.detach(|| -> v2ce::Result<Vec<u8>> {
+            let bytes = py.detach(|| -> PyResult<Vec<u8>> {
+                let mut s = self.inner.lock().unwrap_or_else(|e| e.into_inner());
+                if s.finished {
+                    return Ok(Vec::new());
+                }
+                s.finished = true;
                 let mut batches = Vec::new();
-                s.stage1.finish(&mut batches)?;
+                s.stage1.finish(&mut batches).map_err(py_err)?;
                 Ok(pack(&s.events(batches)))
-            });
-            Ok(records(py, bytes.map_err(py_err)?))
+            })?;
+            Ok(records(py, bytes))
         })
     }
 
@@ -475,6 +517,7 @@ fn write(
         if x.len() != t.len() || y.len() != t.len() || p.len() != t.len() {
             return Err(PyValueError::new_err("t, x, y and p differ in length"));
         }
+        times_in_range("t", t)?;
         py.detach(|| -> v2ce::Result<()> {
             let compression = v2ce::format::Compression::from_name(compression)?;
             let format = v2ce::format::Format::for_output(&path, Some(evt), compression)?;
@@ -510,6 +553,7 @@ fn events_of_columns(
             "{what}: t, x, y and p differ in length"
         )));
     }
+    times_in_range("t", t).map_err(|e| PyValueError::new_err(format!("{what}: {e}")))?;
     if let Some(k) = t.windows(2).position(|w| w[1] < w[0]) {
         return Err(PyValueError::new_err(format!(
             "{what}: not sorted by time (event {} at {} us comes after {} us)",
@@ -521,6 +565,16 @@ fn events_of_columns(
     Ok((0..t.len())
         .map(|i| Event::new(t[i], x[i], y[i], p[i] != 0))
         .collect())
+}
+
+/// An error naming the first of `t` out of the range times may take (see `v2ce::time`).
+pub(crate) fn times_in_range(what: &'static str, t: &[i64]) -> PyResult<()> {
+    for (i, &v) in t.iter().enumerate() {
+        if let Err(e) = v2ce::time::check(what, v) {
+            return Err(PyValueError::new_err(format!("value {i}: {e}")));
+        }
+    }
+    Ok(())
 }
 
 /// Frame times as intervals, as the CLI makes them.
@@ -567,22 +621,44 @@ fn voxelize<'py>(
             .saturating_mul(intervals.len() as u64)
             .saturating_mul(4);
         v2ce::limits::memory("voxelize", bytes, "the voxel tensor").map_err(py_err)?;
-        let dense = py
-            .detach(|| -> v2ce::Result<Vec<f32>> {
+        let dense = detached(py, "voxelize", |tick| {
+            let work = || -> v2ce::Result<Vec<f32>> {
                 let mut v = v2ce::Voxelizer::new(width, height, bins)?;
                 let mut out = Vec::with_capacity(per * intervals.len());
                 for iv in &intervals {
+                    tick()?;
                     let slice = v2ce::event::time_slice(&events, iv.start(), iv.end());
                     out.extend(v.voxelize(slice, *iv)?.to_dense());
                 }
                 Ok(out)
-            })
-            .map_err(py_err)?;
+            };
+            work().map_err(py_err)
+        })?;
         let shape = [intervals.len(), 2 * bins, height as usize, width as usize];
         numpy::PyArray1::from_vec(py, dense)
             .reshape(shape)
             .map_err(|e| PyRuntimeError::new_err(e.to_string()))
     })
+}
+
+/// The events voxel values imply (their sum, NaN and negatives counting none, as the samplers
+/// take them), or an error naming a value above [`v2ce::stage2::MAX_NODE_VALUE`], which a
+/// sampler would clamp and so lose events.
+fn implied_events(data: &[f32]) -> PyResult<u64> {
+    let cap = v2ce::stage2::MAX_NODE_VALUE;
+    let mut sum = 0f64;
+    for (i, &v) in data.iter().enumerate() {
+        let v = f64::from(v);
+        if v > cap {
+            return Err(PyValueError::new_err(format!(
+                "voxels: value {v} at flat index {i} is above the {cap} events one node may hold"
+            )));
+        }
+        if v > 0.0 {
+            sum += v;
+        }
+    }
+    Ok(sum.ceil() as u64)
 }
 
 /// Events re-timed from voxels `(intervals, 2 * bins, H, W)` by a Stage 2 sampler.
@@ -617,12 +693,22 @@ fn sample<'py>(
         let data = voxels
             .as_slice()
             .map_err(|_| PyValueError::new_err("voxels: not C-contiguous"))?;
-        let bytes = py
-            .detach(|| -> v2ce::Result<Vec<u8>> {
+        // Every count is kept: a node above the most a sampler takes is refused, not clamped;
+        // and the events the voxels imply must fit in memory (an event and its record).
+        let implied = implied_events(data)?;
+        v2ce::limits::memory(
+            "voxels",
+            implied.saturating_mul((std::mem::size_of::<Event>() + RECORD) as u64),
+            &format!("the {implied} events the voxels imply"),
+        )
+        .map_err(py_err)?;
+        let bytes = detached(py, "sample", |tick| {
+            let work = || -> v2ce::Result<Vec<u8>> {
                 let s = kind.build(seed);
                 let per = c2 * h * w;
                 let mut out = Vec::new();
                 for (i, iv) in intervals.iter().enumerate() {
+                    tick()?;
                     let grid = v2ce::VoxelGrid::from_dense(
                         w as u16,
                         h as u16,
@@ -634,8 +720,9 @@ fn sample<'py>(
                     out.extend(events);
                 }
                 Ok(pack(&out))
-            })
-            .map_err(py_err)?;
+            };
+            work().map_err(py_err)
+        })?;
         Ok(records(py, bytes))
     })
 }
@@ -655,14 +742,18 @@ fn eval_stage1(
         let sim = events_arg(&sim, "sim")?;
         let intervals = intervals(frame_times_us.as_slice()?)?;
         let size = (width, height);
-        py.detach(|| -> v2ce::Result<String> {
-            v2ce::eval::check_sensor(&real, size, std::path::Path::new("real"))?;
-            v2ce::eval::check_sensor(&sim, size, std::path::Path::new("sim"))?;
-            Ok(v2ce::eval::stage1(&real, &sim, &intervals, size)?
-                .to_json()
-                .to_string())
+        detached(py, "eval_stage1", |tick| {
+            let work = || -> v2ce::Result<String> {
+                v2ce::eval::check_sensor(&real, size, std::path::Path::new("real"))?;
+                v2ce::eval::check_sensor(&sim, size, std::path::Path::new("sim"))?;
+                Ok(
+                    v2ce::eval::stage1_with(&real, &sim, &intervals, size, tick)?
+                        .to_json()
+                        .to_string(),
+                )
+            };
+            work().map_err(py_err)
         })
-        .map_err(py_err)
     })
 }
 
@@ -685,14 +776,18 @@ fn eval_stage2(
         let events = events_arg(&events, "events")?;
         let intervals = intervals(frame_times_us.as_slice()?)?;
         let kind: v2ce::SamplerKind = sampler.parse().map_err(py_err)?;
-        py.detach(|| -> v2ce::Result<String> {
-            v2ce::eval::check_sensor(&events, (width, height), std::path::Path::new("events"))?;
-            let recording = v2ce::format::Recording::new(events, Some((width, height)));
-            let s = kind.build(seed);
-            let report = v2ce::eval::stage2(&recording, &intervals, bins, s.as_ref(), |_| Ok(()))?;
-            serde_json::to_string(&report).map_err(|e| Error::invalid("report", e.to_string()))
+        detached(py, "eval_stage2", |tick| {
+            let work = || -> v2ce::Result<String> {
+                v2ce::eval::check_sensor(&events, (width, height), std::path::Path::new("events"))?;
+                let recording = v2ce::format::Recording::new(events, Some((width, height)));
+                let s = kind.build(seed);
+                // Called in interval order as the scoring goes.
+                let report =
+                    v2ce::eval::stage2(&recording, &intervals, bins, s.as_ref(), |_| tick())?;
+                serde_json::to_string(&report).map_err(|e| Error::invalid("report", e.to_string()))
+            };
+            work().map_err(py_err)
         })
-        .map_err(py_err)
     })
 }
 
@@ -718,11 +813,14 @@ impl Reader {
 
     /// The sensor size the file states, if any.
     #[getter]
-    fn size(&self) -> Option<(u16, u16)> {
-        self.decoder
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .size()
+    fn size(&self, py: Python<'_>) -> Option<(u16, u16)> {
+        // The lock with the GIL released (see `read`).
+        py.detach(|| {
+            self.decoder
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .size()
+        })
     }
 
     /// About `n` more events (packed); empty at the end.
@@ -731,11 +829,12 @@ impl Reader {
             if n == 0 {
                 return Err(PyValueError::new_err("a chunk of 0 events"));
             }
-            let mut guard = self.decoder.lock().unwrap_or_else(|e| e.into_inner());
-            let d: &mut Box<dyn EventDecoder + Send> = &mut guard;
             let path = self.path.clone();
+            // The reader's lock is taken with the GIL released: a thread waiting for it holds
+            // nothing another thread needs (reads from several threads take turns).
             let bytes = py
                 .detach(|| -> v2ce::Result<Vec<u8>> {
+                    let mut d = self.decoder.lock().unwrap_or_else(|e| e.into_inner());
                     let mut out = Vec::with_capacity(n.min(1 << 20));
                     d.read_events(&mut out, n)
                         .map_err(|e| Error::format(&path, e.to_string()))?;

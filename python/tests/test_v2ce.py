@@ -363,3 +363,118 @@ def test_sizes_from_outside_are_bounded_before_allocating():
                       size=(8192, 8192))
     with pytest.raises(ValueError):
         v2ce.sample(np.zeros((1, 3, 4, 4), np.float32), np.array([0, 10], np.int64))
+
+
+def test_extreme_times_are_refused_not_wrapped():
+    frames = moving_bar(n=2)
+    for times in (
+        [-9_223_372_036_854_000_000, 9_223_372_036_854_000_000],
+        [0, 2**62],
+        [0, 2**53 + 1],
+        [np.nan, 9.2e18],
+        [0, np.inf],
+        [5, 5],
+        [5, 4],
+    ):
+        with pytest.raises(ValueError):
+            v2ce.convert(frames, times_us=np.array(times))
+    sim = v2ce.Simulator(64, 48)
+    sim.push(frames[0], 0)
+    for t in (2**62, 2**53 + 1, float("nan"), -1):
+        with pytest.raises(ValueError):
+            sim.push(frames[1], t)
+    assert isinstance(sim.push(frames[1], 10_000), np.ndarray)
+    events = np.zeros(2, v2ce.EVENT_DTYPE)
+    events["t"] = [0, 10]
+    for times in ([0, 2**62], [-(2**62), 0], [0, 2**53 + 1]):
+        with pytest.raises(ValueError):
+            v2ce.eval_stage2(events, np.array(times, np.int64), size=(8, 8))
+        with pytest.raises(ValueError):
+            v2ce.voxelize(events, np.array(times, np.int64), size=(8, 8))
+
+
+def test_write_refuses_values_a_cast_would_change(tmp_path):
+    good = np.zeros(2, v2ce.EVENT_DTYPE)
+    good["t"] = [0, 10]
+    v2ce.write(tmp_path / "ok.csv", good, size=(8, 8))
+    columns = {"t": np.array([0, 10], np.int64), "x": np.array([1, 2], np.int32),
+               "y": np.array([1, 2], np.int32), "p": np.array([1, 0], np.int8)}
+    bad = [("x", np.array([-1, 65539], np.int32)), ("y", np.array([0, 70000], np.int64)),
+           ("t", np.array([0, np.nan])), ("t", np.array([0.0, 1e19])),
+           ("x", np.array([0.5, 1.0]))]
+    for name, values in bad:
+        arrays = dict(columns, **{name: values})
+        dtype = [(k, v.dtype) for k, v in arrays.items()]
+        events = np.zeros(2, dtype)
+        for k, v in arrays.items():
+            events[k] = v
+        with pytest.raises(ValueError, match=name):
+            v2ce.write(tmp_path / f"bad-{name}.csv", events, size=(65535, 65535))
+        assert not (tmp_path / f"bad-{name}.csv").exists()
+
+
+def test_settings_that_contain_themselves_are_refused():
+    frames = moving_bar(n=2)
+    times = np.array([0, 10_000], np.int64)
+    loop = []
+    loop.append(loop)
+    deep = {}
+    d = deep
+    for _ in range(100_000):
+        d["a"] = {}
+        d = d["a"]
+    for value in (loop, deep):
+        with pytest.raises(ValueError, match="deep"):
+            v2ce.convert(frames, times_us=times, foo=value)
+
+
+def test_threads_sharing_a_simulator_or_reader_take_turns(tmp_path):
+    import threading
+
+    frames = moving_bar(n=40)
+    sim = v2ce.Simulator(64, 48)
+    sim.push(frames[0], 0)
+    clock = iter(range(1, 10**6))
+    lock = threading.Lock()
+    errors = []
+
+    def push_many():
+        for k in range(1, 40):
+            with lock:
+                t = next(clock) * 1000
+            try:
+                sim.push(frames[k], t)
+            except ValueError as e:
+                # Another thread's later frame got there first: refused, never a hang.
+                if "does not come after" not in str(e):
+                    errors.append(e)
+
+    path = tmp_path / "r.aedat4"
+    v2ce.write(path, v2ce.convert(frames, times_us=np.arange(40, dtype=np.int64) * 10_000),
+               size=(64, 48))
+    reader = v2ce.open(path)
+
+    def read_many():
+        for chunk in reader.chunks(7):
+            if not (len(chunk) > 0 and reader.size == (64, 48)):
+                errors.append((len(chunk), reader.size))
+
+    threads = [threading.Thread(target=push_many) for _ in range(4)]
+    threads += [threading.Thread(target=read_many) for _ in range(4)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join(timeout=60)
+    assert not any(th.is_alive() for th in threads), "threads still waiting: a deadlock"
+    assert not errors, errors
+
+
+def test_voxels_that_imply_too_many_events_are_refused():
+    times = np.array([0, 10_000], np.int64)
+    one = np.zeros((1, 20, 8, 8), np.float32)
+    one[0, 3, 2, 2] = 1e12
+    with pytest.raises(ValueError, match="above"):
+        v2ce.sample(one, times)
+    # 1e6 per node (the most one may hold) over 64 x 64 x 20 nodes: 82 billion events.
+    with pytest.raises(ValueError, match="GB"):
+        v2ce.sample(np.full((1, 20, 64, 64), 1e6, np.float32), times)

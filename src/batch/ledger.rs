@@ -3,18 +3,28 @@
 //! later run and by the report.
 
 use std::collections::BTreeMap;
-use std::io::{BufRead, Write};
+use std::io::{Read, Seek, Write};
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 
 use serde::{Deserialize, Serialize};
 
+use super::lines::{for_each_line, Line};
 use super::manifest::Settings;
+use super::paths::output_key;
 use super::shard::Shard;
 use crate::error::{Error, Result};
 
-/// The folder of the ledgers, inside the output folder.
+/// The folder of the ledgers, inside the output folder; no output may be in it.
 pub(crate) const LEDGER_DIR: &str = ".v2ce-batch";
+
+/// The longest ledger line read, bytes (a record is about half a kilobyte; its error message
+/// and paths make it longer, never near this); a longer line is skipped with a warning.
+pub(crate) const MAX_LEDGER_LINE: usize = 1 << 20;
+
+/// The largest ledger file read, bytes (1 GiB: about two million records, more than one
+/// shard's items and re-runs); a larger one is an error naming it.
+pub(crate) const MAX_LEDGER_BYTES: u64 = 1 << 30;
 
 /// One line of a ledger: an item converted or failed.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -61,8 +71,10 @@ fn ledger_dir(out: &Path) -> PathBuf {
     out.join(LEDGER_DIR)
 }
 
-/// Every record of every ledger in `out`, in file then line order. A last line cut short (a
-/// task killed while writing it) is ignored.
+/// Every record of every ledger in `out`, in file then line order. A line that is not a
+/// record (a last line cut short by a task killed while writing it, even inside a character;
+/// a line longer than [`MAX_LEDGER_LINE`]) is skipped, with one warning per file. A ledger that
+/// is not a regular file, or is larger than [`MAX_LEDGER_BYTES`], is an error.
 pub(crate) fn read_records(out: &Path) -> Result<Vec<Record>> {
     let dir = ledger_dir(out);
     let mut files: Vec<PathBuf> = match std::fs::read_dir(&dir) {
@@ -76,21 +88,57 @@ pub(crate) fn read_records(out: &Path) -> Result<Vec<Record>> {
     files.sort();
     let mut records = Vec::new();
     for f in files {
-        let file = std::fs::File::open(&f).map_err(|e| Error::io(&f, e))?;
-        for line in std::io::BufReader::new(file).lines() {
-            let line = line.map_err(|e| Error::io(&f, e))?;
-            if let Ok(r) = serde_json::from_str::<Record>(&line) {
-                records.push(r);
-            }
+        let skipped = read_ledger(&f, &mut records)?;
+        if let Some((line, why)) = skipped.first() {
+            tracing::warn!(
+                "{}: skipped {} line(s) that are not ledger records (line {line}: {why})",
+                f.display(),
+                skipped.len()
+            );
         }
     }
     Ok(records)
 }
 
-/// The latest record of each output.
+/// The records of one ledger file appended to `records`; the lines skipped (number, why).
+fn read_ledger(path: &Path, records: &mut Vec<Record>) -> Result<Vec<(usize, String)>> {
+    let meta = std::fs::metadata(path).map_err(|e| Error::io(path, e))?;
+    if !meta.is_file() {
+        return Err(Error::format(
+            path,
+            "a ledger must be a regular file; move this one away",
+        ));
+    }
+    let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let mut skipped = Vec::new();
+    for_each_line(
+        path,
+        std::io::BufReader::new(file),
+        MAX_LEDGER_LINE,
+        MAX_LEDGER_BYTES,
+        |number, line| {
+            match line {
+                Line::Text(text) => match serde_json::from_str::<Record>(text) {
+                    Ok(r) => records.push(r),
+                    Err(e) => skipped.push((number, format!("not a record: {e}"))),
+                },
+                Line::NotUtf8 => skipped.push((number, "not UTF-8 (cut short?)".into())),
+                Line::TooLong => {
+                    skipped.push((number, format!("longer than {MAX_LEDGER_LINE} bytes")))
+                }
+            }
+            Ok(())
+        },
+    )?;
+    Ok(skipped)
+}
+
+/// The latest record of each output, by the output normalised (a record of `./x` is one of
+/// `x`, as the manifest normalises outputs).
 pub(super) fn latest(records: Vec<Record>) -> BTreeMap<String, Record> {
     let mut by_output = BTreeMap::new();
-    for r in records {
+    for mut r in records {
+        r.output = output_key(&r.output);
         let newer = by_output
             .get(&r.output)
             .is_none_or(|old: &Record| old.finished_unix <= r.finished_unix);
@@ -108,12 +156,15 @@ pub(super) struct Ledger {
 }
 
 impl Ledger {
+    /// Opens (creates) the ledger of `shard` in `out`, locked for this task; a last line cut
+    /// short by a killed task is ended, so the next record starts on a line of its own.
     pub(super) fn open(out: &Path, shard: Shard) -> Result<Ledger> {
         let dir = ledger_dir(out);
         std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
         let path = dir.join(format!("shard-{}-of-{}.jsonl", shard.index, shard.count));
-        let file = std::fs::OpenOptions::new()
+        let mut file = std::fs::OpenOptions::new()
             .create(true)
+            .read(true)
             .append(true)
             .open(&path)
             .map_err(|e| Error::io(&path, e))?;
@@ -127,12 +178,14 @@ impl Ledger {
                 path.display()
             )));
         }
+        end_last_line(&mut file).map_err(|e| Error::io(&path, e))?;
         Ok(Ledger {
             path,
             file: Mutex::new(file),
         })
     }
 
+    /// Appends `r` as one line, synced to the disk.
     pub(super) fn append(&self, r: &Record) -> Result<()> {
         let mut line =
             serde_json::to_string(r).map_err(|e| Error::invalid("ledger", e.to_string()))?;
@@ -141,5 +194,115 @@ impl Ledger {
         f.write_all(line.as_bytes())
             .and_then(|()| f.sync_data())
             .map_err(|e| Error::io(&self.path, e))
+    }
+}
+
+/// Ends the file's last line with `\n` when it was cut short (a task killed while writing it):
+/// else the next record would be glued to it, and both lost.
+fn end_last_line(file: &mut std::fs::File) -> std::io::Result<()> {
+    let meta = file.metadata()?;
+    let len = meta.len();
+    if len == 0 || !meta.is_file() {
+        return Ok(());
+    }
+    file.seek(std::io::SeekFrom::Start(len - 1))?;
+    let mut last = [0u8];
+    file.read_exact(&mut last)?;
+    if last[0] != b'\n' {
+        file.write_all(b"\n")?;
+        file.sync_data()?;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn record(output: &str, finished_unix: f64) -> Record {
+        Record {
+            input: format!("in/{output}"),
+            output: output.into(),
+            status: "done".into(),
+            error: None,
+            input_sha256: "ab".into(),
+            input_stamp: (1, 2),
+            settings: Settings::default(),
+            settings_sha256: "cd".into(),
+            version: "0".into(),
+            frames: 3,
+            events: 4,
+            span_us: 5,
+            bytes: 6,
+            wall_s: 0.5,
+            shard: "0/1".into(),
+            finished_unix,
+        }
+    }
+
+    fn line(r: &Record) -> Vec<u8> {
+        let mut l = serde_json::to_vec(r).unwrap();
+        l.push(b'\n');
+        l
+    }
+
+    fn out_dir(tag: &str) -> PathBuf {
+        let out =
+            std::env::temp_dir().join(format!("v2ce-batch-ledger-{tag}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&out);
+        std::fs::create_dir_all(ledger_dir(&out)).unwrap();
+        out
+    }
+
+    #[test]
+    fn lines_that_are_not_records_are_skipped() {
+        let out = out_dir("skip");
+        let file = ledger_dir(&out).join("shard-0-of-1.jsonl");
+        let (a, b) = (record("a.aedat4", 1.0), record("b\u{e9}.aedat4", 2.0));
+        // A record, an over-long line, a record, and a last line cut inside the 'é'.
+        let mut bytes = line(&a);
+        bytes.extend(std::iter::repeat_n(b'x', MAX_LEDGER_LINE + 10));
+        bytes.push(b'\n');
+        bytes.extend(line(&b));
+        let cut = line(&b);
+        let at = cut.iter().position(|&c| c == 0xc3).unwrap() + 1;
+        bytes.extend_from_slice(&cut[..at]);
+        std::fs::write(&file, &bytes).unwrap();
+        let mut records = Vec::new();
+        let skipped = read_ledger(&file, &mut records).unwrap();
+        assert_eq!(records, [a.clone(), b.clone()]);
+        assert_eq!(skipped.iter().map(|s| s.0).collect::<Vec<_>>(), [2, 4]);
+        assert!(skipped[1].1.contains("UTF-8"), "{skipped:?}");
+        assert_eq!(read_records(&out).unwrap(), [a.clone(), b.clone()]);
+        // The next task ends the cut line before it appends: nothing after it is lost.
+        let c = record("c.aedat4", 3.0);
+        Ledger::open(&out, Shard::ALL).unwrap().append(&c).unwrap();
+        assert_eq!(read_records(&out).unwrap(), [a, b, c]);
+        std::fs::remove_dir_all(&out).unwrap();
+    }
+
+    #[test]
+    fn a_ledger_that_is_no_file_is_an_error_not_an_endless_read() {
+        let out = out_dir("dev");
+        let file = ledger_dir(&out).join("shard-0-of-1.jsonl");
+        for device in ["/dev/zero", "/dev/full"] {
+            let _ = std::fs::remove_file(&file);
+            std::os::unix::fs::symlink(device, &file).unwrap();
+            let err = read_records(&out).unwrap_err().to_string();
+            assert!(
+                err.contains("shard-0-of-1.jsonl") && err.contains("regular file"),
+                "{err}"
+            );
+        }
+        std::fs::remove_dir_all(&out).unwrap();
+    }
+
+    #[test]
+    fn records_of_one_output_written_two_ways_are_one_output() {
+        let old = record("./d//x.aedat4", 1.0);
+        let new = record("d/x.aedat4", 2.0);
+        let by_output = latest(vec![old, new.clone()]);
+        assert_eq!(by_output.len(), 1);
+        assert_eq!(by_output["d/x.aedat4"], new);
     }
 }

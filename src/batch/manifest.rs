@@ -2,11 +2,21 @@
 //! lines) or a glob, each input with its [`Settings`] and the output it gets.
 
 use std::collections::HashMap;
-use std::path::{Component, Path, PathBuf};
+use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
+use super::ledger::LEDGER_DIR;
+use super::lines::{for_each_line, Line};
+use super::paths::{in_ledger_dir, normalize};
 use crate::error::{Error, Result};
+
+/// The longest manifest line read, bytes: a path of up to `PATH_MAX` (4096) with its settings
+/// fits many times over; a longer line is an error naming the file and line.
+pub(crate) const MAX_MANIFEST_LINE: usize = 64 * 1024;
+
+/// The largest manifest read, bytes (1 GiB: ten million lines of a hundred bytes).
+pub(crate) const MAX_MANIFEST_BYTES: u64 = 1 << 30;
 
 /// Per-item settings; absent ones come from the config.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
@@ -66,7 +76,10 @@ impl Manifest {
     /// Reads `spec`: a manifest file (`.jsonl`, or lines starting with `{`, are JSON items;
     /// other lines are `PATH [key=value ...]`; `#` starts a comment; relative paths are taken
     /// from the manifest's folder), or, when no such file exists, a glob (`clips/*.mp4`).
-    /// Outputs get `extension` (the output format's).
+    /// Outputs get `extension` (the output format's); each output is normalised (`./x` and
+    /// `a/../x` are `x`), and two inputs with one output, or an output inside the ledgers'
+    /// folder (`.v2ce-batch`), are refused. A line longer than 64 KiB or a file larger than
+    /// 1 GiB (`MAX_MANIFEST_LINE`, `MAX_MANIFEST_BYTES`) is an error.
     pub fn load(spec: &str, extension: &str) -> Result<Manifest> {
         let path = Path::new(spec);
         let entries = if path.is_file() {
@@ -89,7 +102,7 @@ impl Manifest {
         let mut outputs: HashMap<PathBuf, String> = HashMap::new();
         for (name, input, output, settings) in entries {
             let output = match output {
-                Some(o) => relative_output(Path::new(&o)).ok_or_else(|| {
+                Some(o) => normalize(Path::new(&o)).ok_or_else(|| {
                     Error::invalid(
                         "manifest",
                         format!(
@@ -97,8 +110,23 @@ impl Manifest {
                         ),
                     )
                 })?,
-                None => default_output(&name, extension),
+                None => default_output(&name, extension).ok_or_else(|| {
+                    Error::invalid(
+                        "manifest",
+                        format!("{name}: no output name follows from it; give it an \"output\""),
+                    )
+                })?,
             };
+            if in_ledger_dir(&output) {
+                return Err(Error::invalid(
+                    "manifest",
+                    format!(
+                        "{name}: output '{}' is inside {LEDGER_DIR}/, the folder the batch keeps \
+                         for its ledgers; give it another \"output\"",
+                        output.display()
+                    ),
+                ));
+            }
             if let Some(other) = outputs.insert(output.clone(), name.clone()) {
                 return Err(Error::invalid(
                     "manifest",
@@ -119,54 +147,83 @@ impl Manifest {
         }
         Ok(Manifest { items })
     }
+
+    /// Checks the outputs in the output folder `out` as the disk resolves them (links
+    /// followed): none leads into the ledgers' folder, and no two are one file.
+    pub(crate) fn check_outputs(&self, out: &Path) -> Result<()> {
+        super::paths::check_on_disk(out, &self.items)
+    }
 }
 
 type Entry = (String, PathBuf, Option<String>, Settings);
 
 fn read_entries(path: &Path) -> Result<Vec<Entry>> {
     let base = path.parent().unwrap_or(Path::new(""));
-    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
     let jsonl = path.extension().is_some_and(|e| e == "jsonl");
     let mut entries = Vec::new();
-    for (i, line) in text.lines().enumerate() {
-        let line = line.trim();
-        if line.is_empty() || line.starts_with('#') {
+    let reader = std::io::BufReader::new(file);
+    for_each_line(
+        path,
+        reader,
+        MAX_MANIFEST_LINE,
+        MAX_MANIFEST_BYTES,
+        |number, line| {
+            let bad = |m: String| Error::format(path, format!("line {number}: {m}"));
+            let line = match line {
+                Line::Text(l) => l.trim(),
+                Line::NotUtf8 => return Err(bad("not UTF-8 text".into())),
+                Line::TooLong => {
+                    return Err(bad(format!(
+                        "longer than {MAX_MANIFEST_LINE} bytes, the longest manifest line read"
+                    )))
+                }
+            };
+            if line.is_empty() || line.starts_with('#') {
+                return Ok(());
+            }
+            let (name, output, settings) = parse_line(line, jsonl).map_err(bad)?;
+            let input = base.join(&name);
+            entries.push((name, input, output, settings));
+            Ok(())
+        },
+    )?;
+    Ok(entries)
+}
+
+/// One manifest line (trimmed, not a comment): the input's name, its output and settings.
+fn parse_line(
+    line: &str,
+    jsonl: bool,
+) -> std::result::Result<(String, Option<String>, Settings), String> {
+    if jsonl || line.starts_with('{') {
+        let item: JsonItem = serde_json::from_str(line).map_err(|e| e.to_string())?;
+        return Ok((item.input, item.output, item.settings));
+    }
+    let mut fields = line.split_whitespace();
+    let name = fields.next().unwrap_or_default().to_string();
+    let mut map = serde_json::Map::new();
+    let mut output = None;
+    for f in fields {
+        let (k, v) = f
+            .split_once('=')
+            .ok_or_else(|| format!("'{f}' is not key=value"))?;
+        if k == "output" {
+            output = Some(v.to_string());
             continue;
         }
-        let bad = |m: String| Error::format(path, format!("line {}: {m}", i + 1));
-        let (name, output, settings) = if jsonl || line.starts_with('{') {
-            let item: JsonItem = serde_json::from_str(line).map_err(|e| bad(e.to_string()))?;
-            (item.input, item.output, item.settings)
-        } else {
-            let mut fields = line.split_whitespace();
-            let name = fields.next().unwrap_or_default().to_string();
-            let mut map = serde_json::Map::new();
-            let mut output = None;
-            for f in fields {
-                let (k, v) = f
-                    .split_once('=')
-                    .ok_or_else(|| bad(format!("'{f}' is not key=value")))?;
-                if k == "output" {
-                    output = Some(v.to_string());
-                    continue;
-                }
-                let value = match v.parse::<u64>() {
-                    Ok(n) => serde_json::Value::from(n),
-                    Err(_) => match v.parse::<f64>() {
-                        Ok(x) if x.is_finite() => serde_json::Value::from(x),
-                        _ => serde_json::Value::from(v),
-                    },
-                };
-                map.insert(k.to_string(), value);
-            }
-            let settings: Settings = serde_json::from_value(serde_json::Value::Object(map))
-                .map_err(|e| bad(e.to_string()))?;
-            (name, output, settings)
+        let value = match v.parse::<u64>() {
+            Ok(n) => serde_json::Value::from(n),
+            Err(_) => match v.parse::<f64>() {
+                Ok(x) if x.is_finite() => serde_json::Value::from(x),
+                _ => serde_json::Value::from(v),
+            },
         };
-        let input = base.join(&name);
-        entries.push((name, input, output, settings));
+        map.insert(k.to_string(), value);
     }
-    Ok(entries)
+    let settings: Settings =
+        serde_json::from_value(serde_json::Value::Object(map)).map_err(|e| e.to_string())?;
+    Ok((name, output, settings))
 }
 
 fn glob_entries(pattern: &str) -> Result<Vec<Entry>> {
@@ -181,21 +238,12 @@ fn glob_entries(pattern: &str) -> Result<Vec<Entry>> {
     Ok(entries)
 }
 
-/// `p` if it stays inside a folder (relative, no `..`).
-fn relative_output(p: &Path) -> Option<PathBuf> {
-    let inside = !p.as_os_str().is_empty()
-        && p.components()
-            .all(|c| matches!(c, Component::Normal(_) | Component::CurDir));
-    inside.then(|| p.to_path_buf())
-}
-
-/// The input's own relative path with the output's extension; an absolute or escaping path
-/// keeps its file name only.
-pub(super) fn default_output(name: &str, extension: &str) -> PathBuf {
+/// The input's own relative path (normalised) with the output's extension; an absolute or
+/// escaping path keeps its file name only; `None` when neither gives a name (`.`).
+pub(super) fn default_output(name: &str, extension: &str) -> Option<PathBuf> {
     let p = Path::new(name.trim_end_matches('/'));
-    let base =
-        relative_output(p).unwrap_or_else(|| PathBuf::from(p.file_name().unwrap_or_default()));
-    base.with_extension(extension)
+    let base = normalize(p).or_else(|| Some(PathBuf::from(p.file_name()?)))?;
+    Some(base.with_extension(extension))
 }
 
 fn size_of(path: &Path) -> u64 {
@@ -261,5 +309,85 @@ mod tests {
         }
         assert!(Manifest::load("/nonexistent/list.txt", "aedat4").is_err());
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// Loads `text` as a manifest in a folder of its own (named `tag`).
+    fn load(tag: &str, text: &[u8]) -> Result<Manifest> {
+        let dir = std::env::temp_dir().join(format!("v2ce-batch-{tag}-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let list = dir.join("list.txt");
+        std::fs::write(&list, text).unwrap();
+        let m = Manifest::load(list.to_str().unwrap(), "aedat4");
+        std::fs::remove_dir_all(&dir).unwrap();
+        m
+    }
+
+    #[test]
+    fn one_output_written_two_ways_is_one_output() {
+        for text in [
+            "a.y4m output=x.aedat4\nb.y4m output=./x.aedat4\n",
+            "a.y4m output=x.aedat4\nb.y4m output=d/../x.aedat4\n",
+            "a.y4m output=d/x.aedat4\nb.y4m output=d//x.aedat4\n",
+            "a.y4m output=d/x.aedat4\nb.y4m output=./d/./x.aedat4\n",
+            "clips/a.y4m\n./clips/a.y4m\n",
+            "clips/a.y4m\nclips//a.y4m\n",
+            "x.y4m\nb.y4m output=x.aedat4\n",
+        ] {
+            let err = load("dup", text.as_bytes()).unwrap_err().to_string();
+            assert!(err.contains("would both write"), "{text}: {err}");
+        }
+        // What is written is the normalised output, and it may not leave the folder.
+        let m = load("norm", b"a.y4m output=./d//e/../x.aedat4\n./clips/b.y4m\n").unwrap();
+        assert_eq!(m.items[0].output, PathBuf::from("d/x.aedat4"));
+        assert_eq!(m.items[1].output, PathBuf::from("clips/b.aedat4"));
+        for text in ["a.y4m output=d/../../x.aedat4\n", "a.y4m output=.\n", ".\n"] {
+            let err = load("escape", text.as_bytes()).unwrap_err().to_string();
+            assert!(err.contains("output"), "{text}: {err}");
+        }
+    }
+
+    #[test]
+    fn the_ledgers_folder_is_no_output() {
+        for text in [
+            "a.y4m output=.v2ce-batch/shard-0-of-1.jsonl\n",
+            "a.y4m output=./.v2ce-batch/shard-0-of-1.jsonl\n",
+            "a.y4m output=d/../.v2ce-batch/x.aedat4\n",
+            "a.y4m output=.v2ce-batch//x\n",
+            "a.y4m output=.V2CE-BATCH/x\n",
+            "{\"input\": \"a.y4m\", \"output\": \".v2ce-batch/x\"}\n",
+            ".v2ce-batch/a.y4m\n",
+        ] {
+            let err = load("ledger", text.as_bytes()).unwrap_err().to_string();
+            assert!(
+                err.contains("inside .v2ce-batch/") && err.contains("ledgers"),
+                "{text}: {err}"
+            );
+        }
+        // A name that only begins like it is fine.
+        let m = load(
+            "ledger-ok",
+            b"a.y4m output=.v2ce-batch.aedat4\nd/.v2ce-batch/b.y4m\n",
+        );
+        assert_eq!(m.unwrap().items.len(), 2);
+    }
+
+    #[test]
+    fn manifest_lines_and_size_are_bounded() {
+        let mut long = vec![b'a'; MAX_MANIFEST_LINE + 1];
+        long.push(b'\n');
+        let mut text = b"ok.y4m\n".to_vec();
+        text.extend_from_slice(&long);
+        let err = load("long", &text).unwrap_err().to_string();
+        assert!(
+            err.contains("list.txt: line 2: longer than 65536 bytes"),
+            "{err}"
+        );
+        // Cut inside a character: an error with its line, not a whole-file failure without one.
+        let err = load("utf8", b"ok.y4m\nb\xc3\n").unwrap_err().to_string();
+        assert!(err.contains("line 2: not UTF-8"), "{err}");
+        let err = Manifest::load("/dev/zero", "aedat4")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("/dev/zero"), "{err}");
     }
 }

@@ -14,12 +14,17 @@
 //!   (`run.rs`, one item in `item.rs`, the hashes of inputs and settings in `hash.rs`, the
 //!   ledger in `ledger.rs`); what it did in a [`run::ShardSummary`].
 //! - [`report`]: every shard's ledger merged into one [`report::Report`] (`report.rs`).
+//! - Outputs normalised and checked (none into the ledgers' folder, no two one file) in
+//!   `paths.rs`; the manifest, ledgers and config read with bounds on line and file size in
+//!   `lines.rs`.
 
 mod hash;
 mod item;
 mod ledger;
+mod lines;
 mod manifest;
 mod options;
+mod paths;
 mod report;
 mod run;
 mod shard;

@@ -2,13 +2,18 @@
 //! where it gives none, the environment: the shard from a Slurm job array or a Kubernetes
 //! Indexed Job, the threads from `SLURM_CPUS_PER_TASK`.
 
+use std::ffi::OsString;
 use std::path::{Path, PathBuf};
 
 use super::manifest::Manifest;
 use super::shard::Shard;
 use crate::config::Config;
-use crate::error::{Error, Result};
+use crate::error::Result;
 use crate::format::Format;
+
+/// The largest config file read, bytes (16 MiB; the shipped one is a few kilobytes); a larger
+/// one (or `/dev/zero`) is an error naming it.
+pub(crate) const MAX_CONFIG_BYTES: u64 = 16 << 20;
 
 /// How [`run`](super::run) converts.
 #[derive(Debug, Clone)]
@@ -50,23 +55,29 @@ pub struct Flags<'a> {
 }
 
 impl Options {
-    /// The options `flags` give, completed from the environment (`var`, e.g.
-    /// `|k| std::env::var(k).ok()`): the shard (a Slurm job array's task, or a Kubernetes
-    /// Indexed Job's index), the threads, and the config file's text.
-    pub fn from_flags(flags: &Flags, var: impl Fn(&str) -> Option<String>) -> Result<Options> {
+    /// The options `flags` give, completed from the environment (`var`: `std::env::var_os`,
+    /// so that a shard variable that is not UTF-8 is refused rather than taken as unset; a
+    /// closure giving `String`s also does, for tests): the shard (a Slurm job array's task,
+    /// or a Kubernetes Indexed Job's index), the threads, and the config file (read once, at
+    /// most `MAX_CONFIG_BYTES`, 16 MiB; its text is what is hashed and what is parsed).
+    pub fn from_flags<V: Into<OsString>>(
+        flags: &Flags,
+        var: impl Fn(&str) -> Option<V>,
+    ) -> Result<Options> {
+        let var = |k: &str| var(k).map(Into::into);
         let shard = match flags.shard {
             Some(s) => Shard::parse(s)?,
-            None => Shard::from_env(&var, flags.shards)?.unwrap_or(Shard::ALL),
+            None => Shard::from_env(var, flags.shards)?.unwrap_or(Shard::ALL),
         };
         let threads = flags
             .threads
             .filter(|&t| t > 0)
-            .unwrap_or_else(|| task_threads(&var));
+            .unwrap_or_else(|| task_threads(var));
         let (config, config_text) = match flags.config {
-            Some(path) => (
-                Config::load(path)?,
-                std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?,
-            ),
+            Some(path) => {
+                let text = super::lines::read_text(path, MAX_CONFIG_BYTES)?;
+                (Config::parse(&text, path)?, text)
+            }
             None => (Config::default(), String::new()),
         };
         Ok(Options {
@@ -95,9 +106,9 @@ impl Options {
 }
 
 /// The number of threads the task was given: `SLURM_CPUS_PER_TASK`, else the machine's.
-fn task_threads(var: impl Fn(&str) -> Option<String>) -> usize {
+fn task_threads(var: impl Fn(&str) -> Option<OsString>) -> usize {
     var("SLURM_CPUS_PER_TASK")
-        .and_then(|v| v.trim().parse::<usize>().ok())
+        .and_then(|v| v.to_str()?.trim().parse::<usize>().ok())
         .filter(|&n| n > 0)
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
 }
@@ -117,7 +128,8 @@ mod tests {
 
     #[test]
     fn threads_come_from_slurm() {
-        assert_eq!(task_threads(env(&[("SLURM_CPUS_PER_TASK", "3")])), 3);
+        let var = env(&[("SLURM_CPUS_PER_TASK", "3")]);
+        assert_eq!(task_threads(|k| var(k).map(OsString::from)), 3);
     }
 
     #[test]
@@ -171,5 +183,58 @@ mod tests {
             env(&[])
         )
         .is_err());
+    }
+
+    #[test]
+    fn a_shard_from_the_os_environment_that_is_not_utf8_is_refused() {
+        use std::os::unix::ffi::OsStringExt;
+        let flags = Flags {
+            out: Path::new("out"),
+            format: Format::Csv,
+            shard: None,
+            shards: None,
+            threads: Some(1),
+            jobs: None,
+            config: None,
+        };
+        let var = |k: &str| match k {
+            "SLURM_ARRAY_TASK_ID" => Some(OsString::from_vec(vec![0xff])),
+            "SLURM_ARRAY_TASK_COUNT" => Some(OsString::from("4")),
+            _ => None,
+        };
+        let err = Options::from_flags(&flags, var).unwrap_err().to_string();
+        assert!(
+            err.contains("SLURM_ARRAY_TASK_ID") && err.contains("not UTF-8"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn the_config_is_read_once_and_bounded() {
+        let dir = std::env::temp_dir().join(format!("v2ce-batch-options-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("c.toml");
+        std::fs::write(&file, "[stage1]\nseed = 5\n").unwrap();
+        let flags = Flags {
+            out: Path::new("out"),
+            format: Format::Csv,
+            shard: None,
+            shards: None,
+            threads: Some(1),
+            jobs: None,
+            config: Some(&file),
+        };
+        let o = Options::from_flags(&flags, env(&[])).unwrap();
+        assert_eq!(o.config_text, "[stage1]\nseed = 5\n");
+        assert_eq!(o.config.stage1.seed, 5);
+        let zero = Flags {
+            config: Some(Path::new("/dev/zero")),
+            ..flags
+        };
+        let err = Options::from_flags(&zero, env(&[]))
+            .unwrap_err()
+            .to_string();
+        assert!(err.starts_with("/dev/zero: larger than"), "{err}");
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

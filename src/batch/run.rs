@@ -79,7 +79,9 @@ impl std::fmt::Display for ShardSummary {
 /// skipping each item whose latest ledger record is `done` with the same input and settings
 /// and whose output is there at the recorded size. A failing item is recorded with its error
 /// and the shard goes on; `stop` (a signal) ends it after the items in hand stop
-/// ([`Error::Interrupted`]). `log` gets one line per item.
+/// ([`Error::Interrupted`]). `log` gets one line per item. Before anything is converted, the
+/// manifest's outputs are checked in `options.out` as the disk resolves them
+/// (`Manifest::check_outputs`: none into the ledgers' folder, no two one file).
 pub fn run(
     manifest: &Manifest,
     options: &Options,
@@ -88,6 +90,7 @@ pub fn run(
 ) -> Result<ShardSummary> {
     let started = std::time::Instant::now();
     std::fs::create_dir_all(&options.out).map_err(|e| Error::io(&options.out, e))?;
+    manifest.check_outputs(&options.out)?;
     let mine = options.shard.select(&manifest.items);
     let done = latest(read_records(&options.out)?);
     let ledger = Ledger::open(&options.out, options.shard)?;

@@ -1,6 +1,8 @@
 //! Which share of a manifest this task takes: from `--shard I/N`, a Slurm job array or a
 //! Kubernetes Indexed Job; items are spread by size, not by position.
 
+use std::ffi::OsString;
+
 use super::manifest::Item;
 use crate::error::{Error, Result};
 
@@ -45,18 +47,27 @@ impl Shard {
     /// The shard the environment gives: a Slurm job array's task (`SLURM_ARRAY_TASK_ID`,
     /// `SLURM_ARRAY_TASK_COUNT`, less `SLURM_ARRAY_TASK_MIN`, over `SLURM_ARRAY_TASK_STEP`), or
     /// a Kubernetes Indexed Job's `JOB_COMPLETION_INDEX` with `count` (`--shards`, or
-    /// `V2CE_SHARDS`); `None` when neither is set.
+    /// `V2CE_SHARDS`); `None` when neither is set. `var` reads a variable as the OS holds it
+    /// (`std::env::var_os`): a value that is not UTF-8 is refused, naming the variable, not
+    /// taken as unset (which would make the task convert the whole manifest).
     pub fn from_env(
-        var: impl Fn(&str) -> Option<String>,
+        var: impl Fn(&str) -> Option<OsString>,
         count: Option<u32>,
     ) -> Result<Option<Shard>> {
         let num = |name: &str| -> Result<Option<u64>> {
-            match var(name) {
-                None => Ok(None),
-                Some(v) => v.trim().parse::<u64>().map(Some).map_err(|_| {
-                    Error::invalid("shard", format!("{name}={v} is not a whole number"))
-                }),
-            }
+            let Some(raw) = var(name) else {
+                return Ok(None);
+            };
+            let v = raw.to_str().ok_or_else(|| {
+                Error::invalid(
+                    "shard",
+                    format!("{name}={raw:?} is not UTF-8 (expected a whole number)"),
+                )
+            })?;
+            v.trim()
+                .parse::<u64>()
+                .map(Some)
+                .map_err(|_| Error::invalid("shard", format!("{name}={v} is not a whole number")))
         };
         if let Some(id) = num("SLURM_ARRAY_TASK_ID")? {
             let total = num("SLURM_ARRAY_TASK_COUNT")?.ok_or_else(|| {
@@ -150,7 +161,7 @@ mod tests {
         Item {
             name: name.into(),
             input: name.into(),
-            output: default_output(name, "aedat4"),
+            output: default_output(name, "aedat4").unwrap(),
             settings: Settings::default(),
             bytes,
         }
@@ -237,7 +248,12 @@ mod tests {
         assert!(Shard::parse("0/4000000000").is_ok());
         assert!(Shard::parse("0/4294967296").is_err());
         let slurm = |pairs: Vec<(&'static str, String)>| {
-            move |k: &str| pairs.iter().find(|(n, _)| *n == k).map(|(_, v)| v.clone())
+            move |k: &str| {
+                pairs
+                    .iter()
+                    .find(|(n, _)| *n == k)
+                    .map(|(_, v)| OsString::from(v))
+            }
         };
         let max = Shard::from_env(
             slurm(vec![
@@ -273,7 +289,7 @@ mod tests {
                 pairs
                     .iter()
                     .find(|(n, _)| *n == k)
-                    .map(|(_, v)| v.to_string())
+                    .map(|(_, v)| OsString::from(v))
             }
         };
         let slurm = env(&[
@@ -306,5 +322,46 @@ mod tests {
             Some(Shard { index: 2, count: 5 })
         );
         assert_eq!(Shard::from_env(env(&[]), None).unwrap(), None);
+    }
+
+    #[test]
+    fn a_shard_variable_that_is_not_utf8_is_refused_not_unset() {
+        use std::os::unix::ffi::OsStringExt;
+        let bad = || OsString::from_vec(vec![b'3', 0xff]);
+        for (name, others) in [
+            ("SLURM_ARRAY_TASK_ID", vec![("SLURM_ARRAY_TASK_COUNT", "4")]),
+            ("SLURM_ARRAY_TASK_COUNT", vec![("SLURM_ARRAY_TASK_ID", "1")]),
+            (
+                "SLURM_ARRAY_TASK_MIN",
+                vec![
+                    ("SLURM_ARRAY_TASK_ID", "1"),
+                    ("SLURM_ARRAY_TASK_COUNT", "4"),
+                ],
+            ),
+            (
+                "SLURM_ARRAY_TASK_STEP",
+                vec![
+                    ("SLURM_ARRAY_TASK_ID", "1"),
+                    ("SLURM_ARRAY_TASK_COUNT", "4"),
+                ],
+            ),
+            ("JOB_COMPLETION_INDEX", vec![("V2CE_SHARDS", "4")]),
+            ("V2CE_SHARDS", vec![("JOB_COMPLETION_INDEX", "1")]),
+        ] {
+            let var = |k: &str| {
+                if k == name {
+                    return Some(bad());
+                }
+                others
+                    .iter()
+                    .find(|(n, _)| *n == k)
+                    .map(|(_, v)| OsString::from(v))
+            };
+            let err = Shard::from_env(var, None).unwrap_err().to_string();
+            assert!(
+                err.contains(name) && err.contains("not UTF-8"),
+                "{name}: {err}"
+            );
+        }
     }
 }

@@ -75,7 +75,7 @@ pub fn batch(args: BatchArgs) -> Result<()> {
         jobs: args.jobs,
         config: args.config.as_deref(),
     };
-    let options = batch::Options::from_flags(&flags, |k| std::env::var(k).ok())?;
+    let options = batch::Options::from_flags(&flags, |k| std::env::var_os(k))?;
     let stop = crate::daemon::stop_on_signals()?;
     eprintln!("v2ce batch: {}", options.describe(&manifest));
     let log = |line: &str| eprintln!("v2ce batch: {line}");

@@ -165,10 +165,12 @@ impl Format {
     }
 }
 
-/// Prefixes a decoder's errors with its file.
+/// Prefixes a decoder's errors with its file, and checks its events' times where asked.
 struct FileDecoder {
     path: PathBuf,
     inner: Box<dyn EventDecoder + Send>,
+    /// Refuse times outside `±`[`crate::time::MAX_ABS_US`] (see [`open`]).
+    check_times: bool,
 }
 
 impl EventDecoder for FileDecoder {
@@ -177,15 +179,43 @@ impl EventDecoder for FileDecoder {
     }
 
     fn read_events(&mut self, out: &mut Vec<Event>, max: usize) -> Result<usize> {
-        self.inner
+        let start = out.len();
+        let n = self
+            .inner
             .read_events(out, max)
-            .map_err(|e| Error::format(&self.path, e.to_string()))
+            .map_err(|e| Error::format(&self.path, e.to_string()))?;
+        if !self.check_times {
+            return Ok(n);
+        }
+        // Times enter here: every later difference of two fits (see `crate::time`).
+        for e in &out[start..] {
+            if let Err(err) = crate::time::check("event time", e.t) {
+                let at = format!("the event at ({}, {}): {err}", e.x, e.y);
+                out.truncate(start);
+                return Err(Error::format(&self.path, at));
+            }
+        }
+        Ok(n)
     }
 }
 
 /// Opens an event file for streaming: `.aedat4`, `.raw` (EVT 2.0 or 3.0, from its header),
 /// `.csv`, `.npz`, `.h5`/`.hdf5` (DSEC layout), or an IJRR `events.txt`.
+///
+/// Every event's time is checked to lie within `±`[`crate::time::MAX_ABS_US`] as it is read
+/// (a clear error past it), so that what the program computes from them cannot wrap; see
+/// [`open_verbatim`] for a reader that only copies them.
 pub fn open(path: &Path) -> Result<Box<dyn EventDecoder + Send>> {
+    open_checked(path, true)
+}
+
+/// [`open`] for a reader that computes nothing from its events' times (`transcode`, `info`):
+/// any `i64` time is read as it is.
+pub fn open_verbatim(path: &Path) -> Result<Box<dyn EventDecoder + Send>> {
+    open_checked(path, false)
+}
+
+fn open_checked(path: &Path, check_times: bool) -> Result<Box<dyn EventDecoder + Send>> {
     if path.is_dir() {
         return Err(Error::format(path, "a folder, not an event file"));
     }
@@ -223,6 +253,7 @@ pub fn open(path: &Path) -> Result<Box<dyn EventDecoder + Send>> {
     Ok(Box::new(FileDecoder {
         path: path.to_path_buf(),
         inner,
+        check_times,
     }))
 }
 
@@ -396,8 +427,16 @@ pub fn read_frame_times(path: &Path) -> Result<Vec<i64>> {
     require_frames(path, times)
 }
 
-/// Checks that `times`, read from `path`, hold at least two frames (one interval).
+/// Checks that `times`, read from `path`, hold at least two frames (one interval), each in
+/// the range times may take ([`crate::time`]).
 pub fn require_frames(path: &Path, times: Vec<i64>) -> Result<Vec<i64>> {
+    if let Some(&t) = times.iter().find(|&&t| !crate::time::in_range(t)) {
+        let e = crate::time::check("frame time", t).err();
+        return Err(Error::format(
+            path,
+            e.map_or_else(String::new, |e| e.to_string()),
+        ));
+    }
     if times.len() < 2 {
         return Err(Error::format(
             path,

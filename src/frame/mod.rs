@@ -103,7 +103,43 @@ pub struct SourceOptions {
 /// `times.txt`: its folder's images), a `.y4m` (or `.y4m.zst`), an `.aedat4` with APS frames, or
 /// any other file as a video through the `ffmpeg` command-line tool. A text file that is none of
 /// these is refused rather than handed to ffmpeg (which would render its text as frames).
+/// Every frame's time is checked to be in range ([`crate::time`]) as it is read.
 pub fn open(path: &Path, options: &SourceOptions) -> Result<Box<dyn FrameSource>> {
+    Ok(Box::new(TimeChecked(open_source(path, options)?)))
+}
+
+/// A source whose frames' times are checked as they come (see [`crate::time`]): where times
+/// enter the program.
+struct TimeChecked(Box<dyn FrameSource>);
+
+impl FrameSource for TimeChecked {
+    fn size(&self) -> (u16, u16) {
+        self.0.size()
+    }
+
+    fn next_frame(&mut self) -> Result<Option<Frame>> {
+        let frame = self.0.next_frame()?;
+        if let Some(f) = &frame {
+            crate::time::check("frame time", f.t)
+                .map_err(|e| Error::invalid("frame", format!("{}: {e}", self.0.describe())))?;
+        }
+        Ok(frame)
+    }
+
+    fn describe(&self) -> String {
+        self.0.describe()
+    }
+
+    fn frames_hint(&self) -> Option<u64> {
+        self.0.frames_hint()
+    }
+
+    fn encoding(&self) -> SourceEncoding {
+        self.0.encoding()
+    }
+}
+
+fn open_source(path: &Path, options: &SourceOptions) -> Result<Box<dyn FrameSource>> {
     if let Some(f) = options.fps {
         crate::limits::frame_rate("fps", f)?;
     }

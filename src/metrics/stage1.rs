@@ -136,6 +136,20 @@ impl Pool {
     }
 }
 
+/// The bytes [`score`] holds beyond the two streams for a `width x height` sensor with `bins`
+/// nodes: the pooled errors of a chunk of intervals at both kernel sizes, the per-pixel sums
+/// and cell index, and a voxelizer.
+pub fn score_bytes(width: u16, height: u16, bins: usize) -> u64 {
+    let hw = u64::from(width) * u64::from(height);
+    let nodes = (bins * CHUNK_INTERVALS) as u64;
+    // Per kernel size k: 2 planes x nodes / k x (W / k) x (H / k) f64 sums.
+    let pools: u64 = [2u64, 4]
+        .iter()
+        .map(|k| 2 * (nodes / k) * (hw / (k * k)) * 8)
+        .sum();
+    pools + 2 * hw * 4 + 2 * hw * 8 + Voxelizer::fixed_bytes(width, height)
+}
+
 /// Scores `sim` against `real` on `intervals` (both streams sorted by time) for a
 /// `width x height` sensor with `bins` nodes per interval.
 pub fn score(
@@ -146,7 +160,26 @@ pub fn score(
     height: u16,
     bins: usize,
 ) -> Result<Stage1Metrics> {
+    score_with(real, sim, intervals, width, height, bins, &|| Ok(()))
+}
+
+/// [`score`], calling `tick` before each chunk of intervals: its error (an interrupt) ends the
+/// scoring.
+pub fn score_with(
+    real: &[Event],
+    sim: &[Event],
+    intervals: &[Interval],
+    width: u16,
+    height: u16,
+    bins: usize,
+    tick: &dyn Fn() -> Result<()>,
+) -> Result<Stage1Metrics> {
     let (w, h) = (width as usize, height as usize);
+    crate::limits::memory(
+        "sensor size",
+        score_bytes(width, height, bins),
+        &format!("scoring a {width} x {height} sensor"),
+    )?;
     let mut vox = Voxelizer::new(width, height, bins)?;
     let mut real_grid = VoxelGrid::new(width, height, bins)?;
     let mut sim_grid = VoxelGrid::new(width, height, bins)?;
@@ -158,6 +191,7 @@ pub fn score(
     let mut m = Stage1Metrics::default();
     let (mut f1s, mut accs, mut pm2, mut pm4) = ([0.0; 3], [0.0; 3], 0.0, 0.0);
     for chunk in intervals.chunks(CHUNK_INTERVALS) {
+        tick()?;
         let mut conf = [Confusion::default(); 3];
         let nodes_total = bins * chunk.len();
         let mut pools = [

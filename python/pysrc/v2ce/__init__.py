@@ -175,7 +175,7 @@ def convert(
         if times_us is None:
             raise ValueError("frames given as an array need times_us (one time per frame, us)")
         frames = source if source.flags.c_contiguous else np.ascontiguousarray(source)
-        times = np.ascontiguousarray(times_us, dtype=np.int64)
+        times = _checked("times_us", times_us, np.int64, round_floats=True)
         records, out_size = _v2ce.convert_frames(
             frames, times, settings, cfg, _size(size), bool(linear), limit
         )
@@ -221,7 +221,10 @@ class Simulator:
 
     def push(self, frame: np.ndarray, t_us: int) -> np.ndarray:
         """The events of the interval from the previous frame to ``frame`` (``(H, W)``)."""
-        return _events(self._sim.push(np.asarray(frame), int(t_us)), self._sim.size)
+        if np.ndim(t_us) != 0:
+            raise ValueError(f"t_us: one time, not an array of shape {np.shape(t_us)}")
+        t = int(_checked("t_us", [t_us], np.int64, round_floats=True)[0])
+        return _events(self._sim.push(np.asarray(frame), t), self._sim.size)
 
     def finish(self) -> np.ndarray:
         """What Stage 1 still holds; no frame may follow."""
@@ -235,6 +238,36 @@ def read(path: PathLike) -> np.ndarray:
     return _events(records, size)
 
 
+def _checked(name: str, values, dtype, round_floats: bool = False) -> np.ndarray:
+    """``values`` as a contiguous ``dtype`` array, refusing what a cast would change silently:
+    NaN and infinities, values outside the type's range, and (unless ``round_floats``, which
+    rounds them to the nearest integer) floats that are not whole numbers."""
+    a = np.asarray(values)
+    if a.dtype.kind == "f":
+        if a.size and not np.all(np.isfinite(a)):
+            raise ValueError(f"{name}: NaN or infinite values")
+        if round_floats:
+            a = np.rint(a)
+        elif a.size and not np.all(a == np.floor(a)):
+            raise ValueError(f"{name}: values that are not whole numbers")
+    elif a.dtype.kind not in "iub":
+        raise ValueError(f"{name}: {a.dtype} values, expected numbers")
+    info = np.iinfo(dtype)
+    if a.size:
+        lo, hi = a.min(), a.max()
+        if a.dtype.kind == "f":
+            # As floats: the type's top + 1 is a power of two, exact as a float.
+            outside = float(lo) < float(info.min) or float(hi) >= float(info.max) + 1.0
+        else:
+            # As Python integers: exact for every integer type, uint64 included.
+            outside = int(lo) < info.min or int(hi) > info.max
+        if outside:
+            raise ValueError(
+                f"{name}: values from {lo} to {hi}, outside {np.dtype(dtype).name}'s {info.min}..{info.max}"
+            )
+    return np.ascontiguousarray(a, dtype=dtype)
+
+
 def _columns(events: np.ndarray):
     names = events.dtype.names or ()
     missing = [f for f in ("t", "x", "y", "p") if f not in names]
@@ -245,9 +278,9 @@ def _columns(events: np.ndarray):
         )
     p = np.asarray(events["p"])
     return (
-        np.ascontiguousarray(events["t"], dtype=np.int64),
-        np.ascontiguousarray(events["x"], dtype=np.uint16),
-        np.ascontiguousarray(events["y"], dtype=np.uint16),
+        _checked("t", events["t"], np.int64, round_floats=True),
+        _checked("x", events["x"], np.uint16),
+        _checked("y", events["y"], np.uint16),
         np.ascontiguousarray(p > 0, dtype=np.uint8),
     )
 
@@ -269,7 +302,7 @@ def write(
 
 
 def _times(frame_times_us) -> np.ndarray:
-    return np.ascontiguousarray(frame_times_us, dtype=np.int64)
+    return _checked("frame_times_us", frame_times_us, np.int64, round_floats=True)
 
 
 def voxelize(

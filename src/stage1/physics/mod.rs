@@ -392,6 +392,12 @@ impl PhysicsSim {
                 ),
             ));
         }
+        // Times in range and spans exact as f64 (the filter's decay finite), before any state
+        // changes.
+        crate::time::check("frame time", frame.t)?;
+        if let Some(t0) = self.prev_t.filter(|&t0| frame.t > t0) {
+            crate::time::span("frame interval", t0, frame.t)?;
+        }
         let before = self.light_scale;
         let (g, photo) = self.frame_light(frame);
         if g != self.light_scale {
@@ -777,6 +783,14 @@ impl PhysicsStage1 {
     pub fn new(config: &super::Stage1Config, bins: usize, size: (u16, u16)) -> Result<Self> {
         let voxelizer = match config.output {
             super::Stage1Output::Voxels => {
+                // The grid at its fullest (every pixel firing both ways) with the voxelizer.
+                let bytes = crate::voxel::VoxelGrid::max_bytes(size.0, size.1, bins)
+                    + crate::voxel::Voxelizer::fixed_bytes(size.0, size.1);
+                crate::limits::memory(
+                    "frame size",
+                    bytes,
+                    &format!("a {} x {} voxel grid of {bins} nodes", size.0, size.1),
+                )?;
                 Some(crate::voxel::Voxelizer::new(size.0, size.1, bins)?)
             }
             super::Stage1Output::Events => None,
