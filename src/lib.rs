@@ -19,6 +19,7 @@ pub(crate) mod dataset;
 pub mod error;
 pub mod eval;
 pub mod event;
+pub mod file_id;
 pub mod flow;
 pub mod format;
 pub mod frame;

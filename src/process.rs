@@ -161,6 +161,17 @@ fn statm_bytes(index: usize) -> Option<u64> {
     Some(pages * page_size())
 }
 
+/// Makes a write past the file-size limit (`ulimit -f`) fail with an error (`EFBIG`), as a full
+/// disk does, instead of killing the process with `SIGXFSZ`: the command then says what it
+/// wrote and where, like any other failed write.
+pub fn file_size_limit_is_an_error() {
+    // SAFETY: setting a signal's disposition to "ignore" installs no handler; nothing else
+    // in the process handles SIGXFSZ.
+    unsafe {
+        libc::signal(libc::SIGXFSZ, libc::SIG_IGN);
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

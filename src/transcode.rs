@@ -63,7 +63,7 @@ pub fn transcode(
     format: Format,
     size: Option<(u16, u16)>,
 ) -> Result<TranscodeReport> {
-    if same_file(input, output) {
+    if crate::file_id::same_file(input, output) {
         return Err(Error::invalid(
             "output file",
             format!("{} is the input file", output.display()),
@@ -107,13 +107,6 @@ fn write_all(
     }
     encoder.finish()?;
     Ok(TranscodeReport { events, size })
-}
-
-fn same_file(a: &Path, b: &Path) -> bool {
-    match (a.canonicalize(), b.canonicalize()) {
-        (Ok(a), Ok(b)) => a == b,
-        _ => false,
-    }
 }
 
 /// A summary of an event file.

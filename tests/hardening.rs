@@ -643,3 +643,58 @@ fn replay_speeds_are_bounded_and_the_deadline_cuts_waits_short() {
     assert_eq!(code, Some(0), "{err}");
     assert!(started.elapsed() < Duration::from_secs(15), "{err}");
 }
+
+/// Under a file-size limit (`ulimit -f`) a command that writes past it fails like a full disk:
+/// exit status 1 with one error line naming what was written, not death by SIGXFSZ.
+#[test]
+fn a_file_size_limit_is_an_error_not_a_signal() {
+    use std::os::unix::process::CommandExt;
+    let dir = common::temp_dir("hardening-fsize");
+    for (args, out) in [
+        (
+            vec!["convert", "fixture", "--max-frames", "40", "-o", "f.csv"],
+            "f.csv",
+        ),
+        (vec!["transcode", "f-src.csv", "t.csv"], "t.csv"),
+    ] {
+        if args[0] == "transcode" {
+            let rows: String = (0..200_000).map(|i| format!("{i},1,1,1\n")).collect();
+            std::fs::write(dir.join("f-src.csv"), format!("t_us,x,y,on\n{rows}")).unwrap();
+        }
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_v2ce"));
+        cmd.args(&args)
+            .current_dir(&dir)
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped());
+        unsafe {
+            cmd.pre_exec(|| {
+                let cap = libc::rlimit {
+                    rlim_cur: 64 * 1024,
+                    rlim_max: 64 * 1024,
+                };
+                if libc::setrlimit(libc::RLIMIT_FSIZE, &cap) != 0 {
+                    return Err(std::io::Error::last_os_error());
+                }
+                Ok(())
+            });
+        }
+        let done = cmd.output().unwrap();
+        let err = String::from_utf8_lossy(&done.stderr);
+        assert_eq!(
+            done.status.code(),
+            Some(1),
+            "{args:?}: {:?} {err}",
+            done.status
+        );
+        let last = err.lines().last().unwrap_or_default();
+        assert!(last.starts_with("v2ce: error: "), "{args:?}: {err}");
+        assert!(
+            last.contains("too large") && last.contains("partial"),
+            "{args:?}: {err}"
+        );
+        assert!(
+            !dir.join(out).exists(),
+            "{out} was written whole under the limit"
+        );
+    }
+}

@@ -86,6 +86,8 @@ pub enum Command {
 impl Command {
     /// Runs the command.
     pub fn run(self) -> Result<()> {
+        // A write past `ulimit -f` is an error like a full disk, not a silent death.
+        crate::process::file_size_limit_is_an_error();
         match self {
             Command::Eval(Eval::Stage2(args)) => eval::eval_stage2(args),
             Command::Eval(Eval::Stage1(args)) => eval::eval_stage1(args),

@@ -89,6 +89,7 @@ impl Config {
             })
             .collect();
         crate::sink::file::distinct_paths(&files)?;
+        crate::sink::file::not_the_source(&files, Path::new(&self.run.parts.source.source))?;
         if self.run.wait_for_client && !outputs.iter().any(SinkConfig::serves_clients) {
             return Err(Error::invalid("run.wait_for_client", "needs a TCP output"));
         }
@@ -197,6 +198,42 @@ mod tests {
                 .to_string();
             assert!(e.contains("two file outputs"), "{a} {b}: {e}");
         }
+        // Through a hard link.
+        std::fs::write(dir.join("hard-a.csv"), "").unwrap();
+        let _ = std::fs::remove_file(dir.join("hard-b.csv"));
+        std::fs::hard_link(dir.join("hard-a.csv"), dir.join("hard-b.csv")).unwrap();
+        let text = format!(
+            "[run]\nout = \"{d}/hard-a.csv\"\n[[sink]]\ntype = \"file\"\npath = \"{d}/hard-b.csv\"\n"
+        );
+        let e = Config::parse(&text, Path::new("x.toml"))
+            .unwrap()
+            .validate();
+        assert!(e.unwrap_err().to_string().contains("two file outputs"));
+        // An output that is the source: the same path, a symbolic or a hard link.
+        std::fs::write(dir.join("source.aedat4"), "frames").unwrap();
+        let _ = std::fs::remove_file(dir.join("source-hard.aedat4"));
+        let _ = std::fs::remove_file(dir.join("source-soft.aedat4"));
+        std::fs::hard_link(dir.join("source.aedat4"), dir.join("source-hard.aedat4")).unwrap();
+        std::os::unix::fs::symlink(dir.join("source.aedat4"), dir.join("source-soft.aedat4"))
+            .unwrap();
+        for out in [
+            "source.aedat4",
+            "sub/../source.aedat4",
+            "source-hard.aedat4",
+            "source-soft.aedat4",
+        ] {
+            let text = format!("[run]\nsource = \"{d}/source.aedat4\"\nout = \"{d}/{out}\"\n");
+            let e = Config::parse(&text, Path::new("x.toml"))
+                .unwrap()
+                .validate();
+            let e = e.unwrap_err().to_string();
+            assert!(e.contains("is the source"), "{out}: {e}");
+        }
+        let text = format!("[run]\nsource = \"{d}/source.aedat4\"\nout = \"{d}/other.aedat4\"\n");
+        Config::parse(&text, Path::new("x.toml"))
+            .unwrap()
+            .validate()
+            .unwrap();
         // Through a link to an existing file.
         std::fs::write(dir.join("real.csv"), "").unwrap();
         std::os::unix::fs::symlink(dir.join("real.csv"), dir.join("link.csv")).unwrap();

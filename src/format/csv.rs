@@ -128,13 +128,18 @@ impl<R: BufRead> EventDecoder for Decoder<R> {
 /// Writes CSV: the header on creation, then one row per event.
 pub struct Encoder<W: Write> {
     writer: W,
+    /// The last event's time: events come in time order, as in every other format.
+    last_t: i64,
 }
 
 impl<W: Write> Encoder<W> {
     /// Writes the header line.
     pub fn new(mut writer: W) -> Result<Self> {
         writeln!(writer, "{HEADER}").map_err(output_error)?;
-        Ok(Encoder { writer })
+        Ok(Encoder {
+            writer,
+            last_t: i64::MIN,
+        })
     }
 }
 
@@ -144,7 +149,20 @@ fn output_error(e: std::io::Error) -> Error {
 
 impl<W: Write> EventEncoder for Encoder<W> {
     fn write(&mut self, events: &[Event]) -> Result<()> {
-        write_rows(&mut self.writer, events).map_err(output_error)
+        // Refused before anything of the batch is written.
+        let mut last_t = self.last_t;
+        for e in events {
+            if e.t < last_t {
+                return Err(Error::invalid(
+                    "event time",
+                    format!("{} us comes before {last_t} us", e.t),
+                ));
+            }
+            last_t = e.t;
+        }
+        write_rows(&mut self.writer, events).map_err(output_error)?;
+        self.last_t = last_t;
+        Ok(())
     }
 
     fn finish(&mut self) -> Result<()> {
@@ -171,9 +189,26 @@ mod tests {
             Event::new(i64::MAX, 0, 65535, false),
         ];
         write(&p, &events).unwrap();
+        // Any i64 time is carried by a reader that only copies times (transcode)...
+        let mut all = Vec::new();
+        let mut d = super::super::open_verbatim(&p).unwrap();
+        while d.read_events(&mut all, 1000).unwrap() > 0 {}
+        assert_eq!(all, events);
+        // ...and refused, clearly, by one that computes with them.
+        let err = super::super::read_events(&p).unwrap_err().to_string();
+        assert!(err.contains("out of range"), "{err}");
+        write(&p, &events[..2]).unwrap();
         let back = super::super::read_events(&p).unwrap();
-        assert_eq!(back.events.events(), &events[..]);
-        assert_eq!((back.width, back.height), (65535, 65535));
+        assert_eq!(back.events.events(), &events[..2]);
+        assert_eq!((back.width, back.height), (65535, 3));
+        // Events out of time order are refused, within a batch and across batches, and
+        // nothing of a refused batch is written.
+        let mut enc = Encoder::new(Vec::new()).unwrap();
+        assert!(enc.write(&[events[1], events[0]]).is_err());
+        enc.write(&events[1..2]).unwrap();
+        assert!(enc.write(&events[..1]).is_err());
+        let text = String::from_utf8(enc.writer.clone()).unwrap();
+        assert_eq!(text.lines().count(), 2, "{text}");
         std::fs::write(&p, "t_us,x,y,on\n1,2,3,1\n4,5,x,0\n").unwrap();
         let err = super::super::read_events(&p).unwrap_err().to_string();
         assert!(err.contains("line 3"), "{err}");

@@ -6,6 +6,7 @@ use std::time::{Duration, Instant};
 use super::{Sink, SinkContext, SinkStats};
 use crate::error::{Error, Result};
 use crate::event::Event;
+use crate::file_id::FileId;
 use crate::format::{self, EventEncoder, Format};
 
 /// A `[[sink]]` table of `type = "file"` (the default has no path: an output that is off).
@@ -20,34 +21,18 @@ pub struct FileSinkConfig {
     pub evt: Option<u8>,
 }
 
-/// What a path names, for comparing outputs: the file itself when it exists (links resolved),
-/// else its resolved folder and its name, else the path made absolute.
-fn identity(path: &Path) -> std::path::PathBuf {
-    if let Ok(p) = path.canonicalize() {
-        return p;
-    }
-    let folder = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    };
-    match (folder.canonicalize(), path.file_name()) {
-        (Ok(d), Some(name)) => d.join(name),
-        _ => std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf()),
-    }
-}
-
 /// Refuses two file outputs on one file (the same path, spelled differently or through a
 /// link): each would report every event written while the file held a mix of both.
 pub fn distinct_paths(files: &[&FileSinkConfig]) -> Result<()> {
-    let mut seen: Vec<(std::path::PathBuf, &str)> = Vec::new();
+    let mut seen: Vec<(FileId, &str)> = Vec::new();
     for f in files {
-        let id = identity(Path::new(&f.path));
-        if let Some((_, first)) = seen.iter().find(|(other, _)| *other == id) {
+        let id = FileId::of(Path::new(&f.path));
+        if let Some((_, first)) = seen.iter().find(|(other, _)| other.same(&id)) {
             return Err(Error::invalid(
                 "outputs",
                 format!(
                     "two file outputs write {} ('{first}' and '{}'): give each its own file",
-                    id.display(),
+                    id.path().display(),
                     f.path
                 ),
             ));
@@ -55,6 +40,30 @@ pub fn distinct_paths(files: &[&FileSinkConfig]) -> Result<()> {
         seen.push((id, &f.path));
     }
     Ok(())
+}
+
+/// Refuses a file output that is the file the source reads (`source`, where it names a
+/// file): it would be truncated before it is read.
+pub fn not_the_source(files: &[&FileSinkConfig], source: &Path) -> Result<()> {
+    if !source.is_file() {
+        return Ok(());
+    }
+    let source_id = FileId::of(source);
+    match files
+        .iter()
+        .find(|f| FileId::of(Path::new(&f.path)).same(&source_id))
+    {
+        Some(f) => Err(Error::invalid(
+            "outputs",
+            format!(
+                "the file output '{}' is the source {} (the same file): it would be truncated \
+                 before it is read; write to another file",
+                f.path,
+                source.display()
+            ),
+        )),
+        None => Ok(()),
+    }
 }
 
 impl FileSinkConfig {
