@@ -648,7 +648,6 @@ fn replay_speeds_are_bounded_and_the_deadline_cuts_waits_short() {
 /// exit status 1 with one error line naming what was written, not death by SIGXFSZ.
 #[test]
 fn a_file_size_limit_is_an_error_not_a_signal() {
-    use std::os::unix::process::CommandExt;
     let dir = common::temp_dir("hardening-fsize");
     for (args, out) in [
         (
@@ -661,24 +660,7 @@ fn a_file_size_limit_is_an_error_not_a_signal() {
             let rows: String = (0..200_000).map(|i| format!("{i},1,1,1\n")).collect();
             std::fs::write(dir.join("f-src.csv"), format!("t_us,x,y,on\n{rows}")).unwrap();
         }
-        let mut cmd = Command::new(env!("CARGO_BIN_EXE_v2ce"));
-        cmd.args(&args)
-            .current_dir(&dir)
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped());
-        unsafe {
-            cmd.pre_exec(|| {
-                let cap = libc::rlimit {
-                    rlim_cur: 64 * 1024,
-                    rlim_max: 64 * 1024,
-                };
-                if libc::setrlimit(libc::RLIMIT_FSIZE, &cap) != 0 {
-                    return Err(std::io::Error::last_os_error());
-                }
-                Ok(())
-            });
-        }
-        let done = cmd.output().unwrap();
+        let done = under_file_size_limit(&args, &dir, 64 * 1024);
         let err = String::from_utf8_lossy(&done.stderr);
         assert_eq!(
             done.status.code(),
@@ -696,5 +678,68 @@ fn a_file_size_limit_is_an_error_not_a_signal() {
             !dir.join(out).exists(),
             "{out} was written whole under the limit"
         );
+    }
+}
+
+/// Runs v2ce with `args` in `dir` under a file-size limit of `bytes` (`ulimit -f`).
+fn under_file_size_limit(args: &[&str], dir: &Path, bytes: u64) -> std::process::Output {
+    use std::os::unix::process::CommandExt;
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_v2ce"));
+    cmd.args(args)
+        .current_dir(dir)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped());
+    unsafe {
+        cmd.pre_exec(move || {
+            let cap = libc::rlimit {
+                rlim_cur: bytes,
+                rlim_max: bytes,
+            };
+            if libc::setrlimit(libc::RLIMIT_FSIZE, &cap) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
+    }
+    cmd.output().unwrap()
+}
+
+/// A daemon's file output that fills its disk (here a file-size limit) reports as sent exactly
+/// the events its file holds, and the file reads back: the failed write is cut back to the last
+/// whole flush, not left as part of an event, and events still in a buffer are not called sent.
+#[test]
+fn a_full_disk_leaves_a_file_holding_exactly_what_was_reported_sent() {
+    let dir = common::temp_dir("hardening-full-disk");
+    for out in ["full.csv", "full.aedat4", "full.raw"] {
+        let args = [
+            "run",
+            "--source",
+            "fixture",
+            "--out",
+            out,
+            "--udp",
+            "",
+            "--replay-speed",
+            "4",
+            "--duration",
+            "5",
+        ];
+        let done = under_file_size_limit(&args, &dir, 512 * 1024);
+        let err = String::from_utf8_lossy(&done.stderr);
+        assert_eq!(done.status.code(), Some(1), "{out}: {err}");
+        let line = err
+            .lines()
+            .find(|l| l.contains(&format!("file {out}")) && l.contains("events sent"))
+            .unwrap_or_else(|| panic!("{out}: no closing line for the file: {err}"));
+        let sent: u64 = line
+            .split("): ")
+            .nth(1)
+            .and_then(|rest| rest.split_whitespace().next())
+            .and_then(|n| n.parse().ok())
+            .unwrap_or_else(|| panic!("{out}: no count in {line}"));
+        assert!(sent > 0, "{line}");
+        let back = v2ce::format::read_events(&dir.join(out))
+            .unwrap_or_else(|e| panic!("{out} does not read back: {e}"));
+        assert_eq!(back.events.len() as u64, sent, "{out}: {line}");
     }
 }

@@ -280,10 +280,12 @@ fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
 /// 346x260 and at 640x480 (a million events a second, about 9,000 datagrams a second). Also
 /// checked: the recording equals what the UDP output reports sent. The kernel's default
 /// receive buffer holds some 20 ms of datagrams at 640x480, so a receiving thread kept off its
-/// core longer than that loses some (the daemon cannot see it: UDP); on a loaded machine
-/// that happened (0.04% once in CI before issue 25). So a size whose first run is not exact
-/// runs once more, printing the first run's loss, and must then be exact. Meant for release
-/// builds, as CI runs it: a debug build cannot keep up with 640x480 in real time.
+/// core longer than that loses some (the daemon cannot see it: UDP); on a loaded machine that
+/// happened (0.04% once in CI before issue 25, 3-7% beside two busy builds). So what holds
+/// under any load is checked: every event is received, or every one missing is accounted for
+/// by the datagrams the kernel dropped at the receiver's full buffer (its socket's `drops` in
+/// /proc/net/udp, at most 128 events each), and no pixel ever gets more than it was sent. Meant
+/// for release builds, as CI runs it: a debug build cannot keep up with 640x480 in real time.
 #[test]
 fn aestream_receives_every_event_of_the_default_daemon() {
     let py = python_or_skip!("aestream_receives_every_event_of_the_default_daemon");
@@ -341,15 +343,10 @@ fn aestream_receives_every_event_of_the_default_daemon() {
             }
         };
         match attempt(1) {
-            Ok(summary) => eprintln!("{size}: aestream got every event at once; {summary}"),
-            Err(first) => {
-                eprintln!("{size}: aestream missed events in the first run ({first}); once more");
-                let second = attempt(2);
-                assert!(
-                    second.is_ok(),
-                    "{size}: aestream did not get every event twice: {first}; {second:?}"
-                );
+            Ok(summary) => {
+                eprintln!("{size}: every event sent reached aestream's socket; {summary}")
             }
+            Err(summary) => panic!("{size}: aestream did not get what was sent: {summary}"),
         }
     }
     std::fs::remove_dir_all(&dir).unwrap();

@@ -341,6 +341,11 @@ impl EventEncoder for Encoder {
         Ok(())
     }
 
+    /// Written whole only at the end (the archive's or the file's index comes last).
+    fn readable_after_flush(&self) -> bool {
+        false
+    }
+
     fn finish(&mut self) -> Result<()> {
         self.flush_events()?;
         self.flush_ms()?;

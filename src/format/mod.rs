@@ -56,6 +56,13 @@ pub trait EventEncoder {
     fn flush(&mut self) -> Result<()> {
         Ok(())
     }
+
+    /// Whether the file holds, in a form its readers take, every event written once
+    /// [`EventEncoder::flush`] has returned; `false` for the formats written whole only at
+    /// [`EventEncoder::finish`] (`.npz`, `.h5`).
+    fn readable_after_flush(&self) -> bool {
+        true
+    }
 }
 
 /// Checks what every encoder and sink requires of an event: time at or after `last_t`, and a
@@ -280,6 +287,10 @@ impl EventEncoder for FileEncoder {
         self.inner
             .flush()
             .map_err(|e| Error::format(&self.path, e.to_string()))
+    }
+
+    fn readable_after_flush(&self) -> bool {
+        self.inner.readable_after_flush()
     }
 }
 

@@ -151,6 +151,11 @@ impl<W: Write + Seek> EventEncoder for Encoder<W> {
         Ok(())
     }
 
+    /// Written whole only at the end (the archive's or the file's index comes last).
+    fn readable_after_flush(&self) -> bool {
+        false
+    }
+
     fn finish(&mut self) -> Result<()> {
         let Some(out) = self.out.take() else {
             return Err(bad("finished twice"));

@@ -115,6 +115,16 @@ pub struct FileSink {
     last_flush: Option<Instant>,
     /// A second handle on the file, to sync what the encoder wrote (periodic flushes only).
     sync: Option<std::fs::File>,
+    /// Events the encoder took since the last flush: counted as sent only once a flush (or the
+    /// end) has put them in the file, so a full disk cannot have them reported sent.
+    pending: u64,
+    /// The file's length after the last flush that put every sent event in it: a write that
+    /// fails later (a full disk, `ulimit -f`) is cut back to it, so the file holds exactly the
+    /// events counted as sent, and no part of an event.
+    good_len: Option<u64>,
+    /// A write failed: the file is cut back and the encoder, which may still hold part of the
+    /// failed batch, is not used again.
+    failed: bool,
 }
 
 impl FileSink {
@@ -128,6 +138,9 @@ impl FileSink {
             flush_every: None,
             last_flush: None,
             sync: None,
+            pending: 0,
+            good_len: None,
+            failed: false,
         })
     }
 
@@ -135,15 +148,48 @@ impl FileSink {
     /// `period` or more after the last flush.
     pub fn with_flush_period(mut self, period: Duration) -> Self {
         self.flush_every = Some(period);
-        // Syncing through any descriptor of the file puts its data on the disk.
-        self.sync = std::fs::File::open(&self.path).ok();
+        // Syncing through any descriptor of the file puts its data on the disk; writing, to cut
+        // a failed write back (see `good_len`).
+        self.sync = std::fs::OpenOptions::new()
+            .write(true)
+            .open(&self.path)
+            .ok();
         self
     }
 
     /// Flushes the encoder, then has the data (and, the first time, the file's directory
     /// entry) put on the disk, so a power loss keeps what was flushed.
-    fn flush_to_disk(&mut self) -> Result<()> {
+    /// Hands what the encoder holds to the file; the events it took count as sent where the
+    /// file now holds them readably (not `.npz` or `.h5`, whole only at the end).
+    fn flush_into_file(&mut self) -> Result<()> {
         self.encoder.flush()?;
+        if self.encoder.readable_after_flush() {
+            // In the file (the kernel has it: a killed process loses none of it).
+            self.stats.events_sent += std::mem::take(&mut self.pending);
+            self.good_len = self
+                .sync
+                .as_ref()
+                .and_then(|f| f.metadata().ok())
+                .map(|m| m.len());
+        }
+        Ok(())
+    }
+
+    /// After a failed write: the file cut back to its length at the last good flush (see
+    /// `good_len`), where it can be.
+    fn cut_back(&mut self) {
+        if let (Some(file), Some(len)) = (&self.sync, self.good_len) {
+            if let Err(e) = file.set_len(len) {
+                tracing::warn!(
+                    "{}: could not cut a failed write back: {e}",
+                    self.path.display()
+                );
+            }
+        }
+    }
+
+    fn flush_to_disk(&mut self) -> Result<()> {
+        self.flush_into_file()?;
         if let Some(file) = &self.sync {
             file.sync_data().map_err(|e| Error::io(&self.path, e))?;
             if self.last_flush.is_none() {
@@ -171,29 +217,64 @@ impl Sink for FileSink {
     }
 
     fn send(&mut self, events: &[Event]) -> Result<()> {
+        if self.failed {
+            return Err(Error::Run(format!(
+                "{}: an earlier write failed",
+                self.path.display()
+            )));
+        }
+        let sent = self.send_and_flush(events);
+        if sent.is_err() {
+            self.failed = true;
+            self.cut_back();
+        }
+        sent
+    }
+
+    fn finish(&mut self) -> Result<()> {
+        if self.failed {
+            // Reported when the write failed; the file holds what was counted as sent.
+            return Ok(());
+        }
+        let finished = self.finish_file();
+        if finished.is_err() {
+            self.failed = true;
+            self.cut_back();
+        }
+        finished
+    }
+
+    fn stats(&self) -> SinkStats {
+        self.stats
+    }
+}
+
+impl FileSink {
+    fn send_and_flush(&mut self, events: &[Event]) -> Result<()> {
         self.stats.events_in += events.len() as u64;
         self.encoder.write(events)?;
-        self.stats.events_sent += events.len() as u64;
+        self.pending += events.len() as u64;
         self.stats.messages_sent += 1;
         if let Some(period) = self.flush_every {
             if self.last_flush.is_none_or(|at| at.elapsed() >= period) {
                 self.flush_to_disk()?;
                 self.last_flush = Some(Instant::now());
+            } else {
+                // Each batch into the file (one write a frame): what counts as sent is what
+                // the file holds, also when the disk fills.
+                self.flush_into_file()?;
             }
         }
         Ok(())
     }
 
-    fn finish(&mut self) -> Result<()> {
+    fn finish_file(&mut self) -> Result<()> {
         self.encoder.finish()?;
+        self.stats.events_sent += std::mem::take(&mut self.pending);
         if let Some(file) = &self.sync {
             file.sync_data().map_err(|e| Error::io(&self.path, e))?;
         }
         self.stats.bytes_sent = std::fs::metadata(&self.path).map_or(0, |m| m.len());
         Ok(())
-    }
-
-    fn stats(&self) -> SinkStats {
-        self.stats
     }
 }

@@ -77,7 +77,8 @@ impl SinkConfig {
 pub struct SinkStats {
     /// Events handed to the sink.
     pub events_in: u64,
-    /// Events written or sent (for TCP: to at least one client).
+    /// Events written or sent (for TCP: to at least one client; for a file: once a flush or
+    /// the end has put them in the file, not while they wait in its buffer).
     pub events_sent: u64,
     /// Events this output lost: dropped by the output itself (a datagram that could not be
     /// sent, a packet no client could take) or evicted from its queue (`events_evicted`).
