@@ -6,7 +6,7 @@
 
 mod common;
 
-use std::io::{BufRead, Read, Write};
+use std::io::{BufRead, ErrorKind, Read, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::{Arc, Mutex};
@@ -457,9 +457,11 @@ fn threads_and_rss(pid: u32) -> (Threads, u64) {
 struct Threads(std::collections::BTreeMap<String, u64>);
 
 impl Threads {
-    /// The compute workers the pipeline starts on first use, whatever the listener does: the
-    /// helper pool (one per core) and the motion model's look-ahead worker (one).
-    const LAZY: [(&'static str, u64); 2] = [("v2ce-helper", 0), ("v2ce-motion", 1)];
+    /// The workers started on first use, at a fixed number whatever clients do: the pipeline's
+    /// helper pool (one per core) and the motion model's look-ahead worker (one), and the
+    /// listener's preview encoder (one, with the first page or stream).
+    const LAZY: [(&'static str, u64); 3] =
+        [("v2ce-helper", 0), ("v2ce-motion", 1), ("v2ce-preview", 1)];
 
     /// Threads other than the lazily started compute workers.
     fn others(&self) -> u64 {
@@ -629,8 +631,8 @@ fn the_listener_holds_under_attack_and_never_holds_the_daemon() {
         rss1 < rss0 + 64 * 1024,
         "resident memory {rss0} KiB -> {rss1} KiB under attack"
     );
-    // Past the head timeout the half-open connections are gone, the never-read pipelines and
-    // streams past the exchange and stall timeouts: the listener answers again.
+    // The oldest half-open connections gave way to the newer ones at the cap, and give way to
+    // each probe: the listener answers at once.
     let started = Instant::now();
     wait_for(Duration::from_secs(30), "/healthz 200 under attack", || {
         code(&raw(&a, b"GET /healthz HTTP/1.0\r\n\r\n", second * 2)) == 200
@@ -638,11 +640,13 @@ fn the_listener_holds_under_attack_and_never_holds_the_daemon() {
     let waited = started.elapsed();
     let text = daemon.get("/metrics").1;
     let timed_out = sample(&text, "v2ce_http_connections_total{result=\"timed_out\"}").unwrap();
-    assert!(timed_out >= 1.0, "{text}");
+    let evicted = sample(&text, "v2ce_http_connections_total{result=\"evicted\"}").unwrap();
+    assert!(evicted >= 1.0, "{text}");
     let rejected = sample(&text, "v2ce_http_rejected_requests_total").unwrap();
     assert!(rejected >= 7.0, "{rejected}");
     eprintln!(
-        "listener answered again {:.1} s after the slowloris; {timed_out} connections timed out",
+        "listener answered {:.2} s after the slowloris; {evicted} half-open connections evicted, \
+         {timed_out} timed out",
         waited.as_secs_f64()
     );
     // The daemon kept streaming through it all.
@@ -685,5 +689,189 @@ fn the_listener_holds_under_attack_and_never_holds_the_daemon() {
         "stopped {:.2} s after SIGTERM with {} attacking connections open",
         started.elapsed().as_secs_f64(),
         held.len() + streams.len()
+    );
+}
+
+/// The latency of one `/healthz` probe (connect, request, the whole answer) and its status.
+fn probe(address: &str, limit: Duration) -> (u16, Duration) {
+    let started = Instant::now();
+    let r = raw(address, b"GET /healthz HTTP/1.0\r\n\r\n", limit);
+    (code(&r), started.elapsed())
+}
+
+/// The `q` quantile (nearest rank) of `samples`.
+fn quantile(samples: &[Duration], q: f64) -> Duration {
+    let mut sorted = samples.to_vec();
+    sorted.sort();
+    let rank = ((q * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len());
+    sorted[rank - 1]
+}
+
+fn ms(d: Duration) -> f64 {
+    d.as_secs_f64() * 1e3
+}
+
+/// A slowloris holding every connection slot (300 half-open connections, each one byte of a
+/// request head, against a cap of 256) delays no probe: the oldest half-open connection gives
+/// way to each new one, so `/healthz` answers 200 at once (a liveness probe would otherwise
+/// restart a healthy daemon), and the half-open ones that gave way are the oldest.
+#[test]
+fn half_open_connections_give_way_to_probes() {
+    let dir = common::temp_dir("http-half-open");
+    let daemon = Daemon::start(
+        &["--source", "fixture", "--loop", "--udp", "127.0.0.1:9"],
+        &dir,
+    );
+    let a = daemon.address.clone();
+    assert_eq!(daemon.get("/healthz").0, 200);
+    let mut held = Vec::new();
+    for _ in 0..300 {
+        let mut s = std::net::TcpStream::connect(&a).unwrap();
+        let _ = s.write_all(b"G");
+        held.push(s);
+    }
+    let attacked = Instant::now();
+    let mut latencies = Vec::new();
+    for i in 0..20 {
+        let (code, took) = probe(&a, Duration::from_secs(5));
+        assert_eq!(code, 200, "probe {i} with 300 half-open connections held");
+        assert!(
+            took < Duration::from_secs(1),
+            "probe {i} took {took:?} with 300 half-open connections held"
+        );
+        latencies.push(took);
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    eprintln!(
+        "/healthz with 300 half-open connections held: p50 {:.1} ms, p99 {:.1} ms (20 probes)",
+        ms(quantile(&latencies, 0.5)),
+        ms(quantile(&latencies, 0.99))
+    );
+    // The oldest gave way (closed without an answer); the newest still wait for their heads
+    // (until the head timeout, 5 s after they came).
+    let state = |s: &mut std::net::TcpStream| {
+        s.set_read_timeout(Some(Duration::from_millis(200)))
+            .unwrap();
+        match s.read(&mut [0u8; 64]) {
+            Ok(0) => "closed",
+            Ok(_) => "answered",
+            Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => "open",
+            Err(_) => "closed",
+        }
+    };
+    assert_eq!(state(&mut held[0]), "closed");
+    if attacked.elapsed() < Duration::from_secs(4) {
+        assert_eq!(state(&mut held[299]), "open");
+    }
+    let text = daemon.get("/metrics").1;
+    let evicted = sample(&text, "v2ce_http_connections_total{result=\"evicted\"}").unwrap();
+    // 300 through 256 slots (then each probe takes the slot the last one left, but the first).
+    assert!(evicted >= 300.0 - 256.0, "{evicted} evicted");
+    assert_eq!(
+        sample(&text, "v2ce_http_connections_total{result=\"refused\"}"),
+        Some(0.0)
+    );
+}
+
+/// A reader of one `/events` stream (`query` after `?`), as a page: counts the messages until
+/// told to stop; and whether the stream was still open then.
+fn stream_reader(
+    address: &str,
+    query: &str,
+    stop: Arc<std::sync::atomic::AtomicBool>,
+) -> std::thread::JoinHandle<(u64, bool)> {
+    let mut s = std::net::TcpStream::connect(address).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    write!(s, "GET /events?{query} HTTP/1.0\r\nHost: x\r\n\r\n").unwrap();
+    std::thread::spawn(move || {
+        let mut reader = std::io::BufReader::new(s);
+        let (mut messages, mut line) = (0u64, String::new());
+        while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+            line.clear();
+            match reader.read_line(&mut line) {
+                Ok(0) | Err(_) => return (messages, false),
+                Ok(_) => messages += u64::from(line.starts_with("data: ")),
+            }
+        }
+        (messages, true)
+    })
+}
+
+/// Eight preview pages (the most allowed) of a 1280x720 run, showing the last second of events:
+/// the frames are encoded off the listener's thread, once per push for all of them, so
+/// `/healthz` stays prompt (the issue's target: p99 under 100 ms, printed; asserted with room
+/// for a busy CI machine), the streams all keep coming, and no thread is added per stream.
+#[test]
+fn preview_streams_never_delay_probes() {
+    let dir = common::temp_dir("http-streams");
+    let daemon = Daemon::start(
+        &[
+            "--source",
+            "fixture",
+            "--size",
+            "1280x720",
+            "--loop",
+            "--udp",
+            "127.0.0.1:9",
+        ],
+        &dir,
+    );
+    let a = daemon.address.clone();
+    let pid = daemon.child.id();
+    wait_for(Duration::from_secs(60), "frames flowing", || {
+        daemon.get("/readyz").0 == 200
+    });
+    let (threads0, _) = threads_and_rss(pid);
+    let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    // The page's longest window: the densest frames, the slowest to encode.
+    let readers: Vec<_> = (0..8)
+        .map(|_| stream_reader(&a, "window_ms=1000", stop.clone()))
+        .collect();
+    std::thread::sleep(Duration::from_secs(1));
+    let frames = |d: &Daemon| sample(&d.get("/metrics").1, "v2ce_http_preview_frames_total");
+    let (encoded0, started) = (frames(&daemon).unwrap(), Instant::now());
+    let mut latencies = Vec::new();
+    for i in 0..50 {
+        let (code, took) = probe(&a, Duration::from_secs(10));
+        assert_eq!(code, 200, "probe {i}");
+        latencies.push(took);
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let (p50, p99) = (quantile(&latencies, 0.5), quantile(&latencies, 0.99));
+    eprintln!(
+        "/healthz with 8 preview streams of 1280x720 open: p50 {:.1} ms, p99 {:.1} ms, max {:.1} \
+         ms (50 probes; the issue's target: p99 under 100 ms)",
+        ms(p50),
+        ms(p99),
+        ms(*latencies.iter().max().unwrap())
+    );
+    assert!(p99 < Duration::from_millis(500), "p99 {p99:?}");
+    // Still 8 streams: a ninth is refused; one encoder thread, one listener thread.
+    assert_eq!(daemon.get("/events").0, 503);
+    let (threads1, _) = threads_and_rss(pid);
+    assert_eq!(threads1.0.get("v2ce-preview"), Some(&1), "{threads1:?}");
+    assert_eq!(threads1.0.get("http"), Some(&1), "{threads1:?}");
+    assert!(
+        threads1.others() <= threads0.others() && threads1.lazy_bounded(),
+        "threads {threads0:?} -> {threads1:?} with 8 streams"
+    );
+    let encoded = frames(&daemon).unwrap() - encoded0;
+    let periods = started.elapsed().as_secs_f64() / 0.2;
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    let got: Vec<(u64, bool)> = readers.into_iter().map(|r| r.join().unwrap()).collect();
+    let messages: u64 = got.iter().map(|(m, _)| m).sum();
+    eprintln!(
+        "{encoded} frames encoded in {periods:.0} push periods; the 8 streams got {:?} messages",
+        got.iter().map(|(m, _)| m).collect::<Vec<_>>()
+    );
+    assert!(got.iter().all(|(m, open)| *open && *m >= 2), "{got:?}");
+    // Once per push for all 8 streams (one window), not once per stream.
+    assert!(
+        encoded <= periods + 2.0,
+        "{encoded} frames in {periods:.0} periods"
+    );
+    assert!(
+        messages as f64 >= 2.0 * encoded,
+        "{messages} messages of {encoded} frames"
     );
 }

@@ -64,11 +64,12 @@ fn listener(x: &mut Exposition, status: &Status) {
     x.family(
         name,
         "counter",
-        "Connections to this listener, by result: accepted, refused (at the connection cap), timed_out (head, exchange or stalled stream), accept_error.",
+        "Connections to this listener, by result: accepted, refused (at the connection cap, no half-open one to evict), evicted (half-open at the cap, the oldest first, for a new one), timed_out (head, exchange or stalled stream), accept_error.",
     );
     let get = |a: &std::sync::atomic::AtomicU64| a.load(std::sync::atomic::Ordering::Relaxed);
     x.sample(name, "result=\"accepted\"", get(&l.accepted));
     x.sample(name, "result=\"refused\"", get(&l.refused));
+    x.sample(name, "result=\"evicted\"", get(&l.evicted));
     x.sample(name, "result=\"timed_out\"", get(&l.timed_out));
     x.sample(name, "result=\"accept_error\"", get(&l.accept_errors));
     x.single(
@@ -76,6 +77,12 @@ fn listener(x: &mut Exposition, status: &Status) {
         "counter",
         "Requests refused: a method other than GET or HEAD, a request body, too many preview streams.",
         get(&l.rejected),
+    );
+    x.single(
+        "v2ce_http_preview_frames_total",
+        "counter",
+        "Preview frames drawn and encoded for the page: one per push and accumulation window, however many pages show it.",
+        get(&l.preview_frames),
     );
 }
 

@@ -11,7 +11,11 @@
 //!
 //! A scrape reads the pipeline's atomic counters and takes its histograms' locks for a copy;
 //! the stage threads never wait on the listener, and no client can hold it (see [`server`]).
+//! The preview frames are drawn and encoded on a thread of their own ([`encoder`]), once per
+//! push and accumulation window for all the pages open, so the listener's thread only copies
+//! bytes and a probe never waits behind a PNG.
 
+pub mod encoder;
 mod metrics;
 pub mod server;
 
@@ -92,19 +96,16 @@ fn window_ms(query: &str) -> f64 {
         .min(crate::sink::preview::KEEP_US as f64 / 1e3)
 }
 
-/// The page with the settings and the current frame filled in (so it shows events at once,
-/// before the first push).
-fn page(status: &Status, window_ms: f64) -> String {
+/// The page with the settings and the current frame (the PNG in base64, when there is one)
+/// filled in, so it shows events at once, before the first push.
+fn page(status: &Status, window_ms: f64, png_base64: Option<&str>) -> String {
     // Inside a <script>: no "</" may appear.
     let settings = serde_json::to_string(&status.settings)
         .unwrap_or_else(|_| "[]".into())
         .replace('<', "\\u003c");
-    let (png, _) = frame_png(status, (window_ms * 1e3) as i64);
+    let frame = png_base64.map_or(String::new(), |png| format!("data:image/png;base64,{png}"));
     PAGE.replace("SETTINGS_JSON", &settings)
-        .replace(
-            "INITIAL_FRAME",
-            &format!("data:image/png;base64,{}", base64(&png)),
-        )
+        .replace("INITIAL_FRAME", &frame)
         .replace("WINDOW_MS", &format!("{}", window_ms.round()))
 }
 
@@ -128,13 +129,19 @@ fn frame_png(status: &Status, window_us: i64) -> (Vec<u8>, usize) {
     (png, shown)
 }
 
-/// One server-sent event: the frame of the last `window_us` as a PNG and the stats.
-fn frame_event(status: &Status, window_us: i64) -> String {
+/// The frame of the last `window_us` (a PNG, in base64) and the stats, as one server-sent
+/// event; drawn on the encoder's thread ([`encoder`]), never the listener's.
+fn encode(status: &Status, window_us: i64) -> encoder::Encoded {
     let (w, h) = status.preview.size();
     let (png, shown) = frame_png(status, window_us);
+    status
+        .listener
+        .preview_frames
+        .fetch_add(1, Ordering::Relaxed);
+    let png_base64 = base64(&png);
     let s = status.counters.peek();
     let body = serde_json::json!({
-        "png": base64(&png),
+        "png": png_base64,
         "width": w,
         "height": h,
         "shown": shown,
@@ -144,7 +151,10 @@ fn frame_event(status: &Status, window_us: i64) -> String {
         "events": s.events_out,
         "ready": status.readiness().err().unwrap_or_else(|| "ready".into()),
     });
-    format!("data: {body}\n\n")
+    encoder::Encoded {
+        event: bytes::Bytes::from(format!("data: {body}\n\n")),
+        png_base64,
+    }
 }
 
 #[cfg(test)]
@@ -242,13 +252,14 @@ mod tests {
     #[test]
     fn the_page_is_self_contained_and_escapes_settings() {
         let s = status();
-        let html = page(&s, 100.0);
+        let html = page(&s, 100.0, Some("iVBORw0KGgo="));
         assert!(
             !html.contains("</script>\""),
             "settings break out of the script"
         );
         assert!(html.contains("\\u003c/script>"));
-        assert!(html.contains("data:image/png;base64,"));
+        assert!(html.contains("src=\"data:image/png;base64,iVBORw0KGgo=\""));
+        assert!(page(&s, 100.0, None).contains("src=\"\""));
         assert!(!html.contains("SETTINGS_JSON") && !html.contains("INITIAL_FRAME"));
         assert!(!html.contains("http://") && !html.contains("https://"));
         assert_eq!(window_ms("window_ms=100"), 100.0);

@@ -11,7 +11,7 @@
 //! skipped `max_skipped` batches in a row, or whose socket fails or stalls past the write
 //! timeout, is disconnected. The other clients are not slowed.
 
-use std::io::Write;
+use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpListener, TcpStream, ToSocketAddrs};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -259,6 +259,8 @@ struct Client {
     thread: JoinHandle<()>,
     /// The connection, to cut off a client still being written at the stop deadline.
     stream: Option<TcpStream>,
+    /// Set once every byte for the client is written and its side shut (see [`serve`]).
+    delivered: Arc<AtomicBool>,
 }
 
 /// Serves events to TCP clients.
@@ -386,10 +388,12 @@ impl Acceptor {
                     let alive = Arc::new(AtomicBool::new(true));
                     let flag = alive.clone();
                     let (timeout, written) = (self.timeout, self.written.clone());
+                    let delivered = Arc::new(AtomicBool::new(false));
+                    let done = delivered.clone();
                     let thread = std::thread::Builder::new()
                         .name(format!("v2ce-tcp-{peer}"))
                         .spawn(move || {
-                            let _ = serve(stream, encoder, rx, timeout, &written);
+                            let _ = serve(stream, encoder, rx, timeout, &written, &done);
                             flag.store(false, Ordering::Relaxed);
                         });
                     match thread {
@@ -400,6 +404,7 @@ impl Acceptor {
                                 skipped_in_a_row: 0,
                                 thread,
                                 stream: cut_off,
+                                delivered,
                             }),
                             Err(_) => return,
                         },
@@ -421,12 +426,23 @@ impl Acceptor {
     }
 }
 
+/// How long a client's connection stays open, once everything is written and our side is
+/// shut, for the client to close its own (see [`serve`]).
+const LINGER: Duration = Duration::from_secs(1);
+
+/// Writes the greeting, every batch and the end to one client; then shuts our side and, for at
+/// most [`LINGER`], reads (and discards) until the client closes its side. That last step is a
+/// lingering close: a socket closed while the client's bytes wait unread in it resets the
+/// connection, and a client that gets the reset discards what it had not read yet, our last
+/// message among them (seen as dv-processing's reader missing the last packet on a loaded
+/// machine).
 fn serve(
     mut stream: TcpStream,
     mut encoder: ClientEncoder,
     rx: crossbeam_channel::Receiver<Arc<[Event]>>,
     timeout: Duration,
     written: &AtomicU64,
+    delivered: &AtomicBool,
 ) -> Result<()> {
     let io = |e: std::io::Error| bad(format!("client: {e}"));
     stream.set_nonblocking(false).map_err(io)?;
@@ -448,7 +464,20 @@ fn serve(
     stream.write_all(&buf).map_err(io)?;
     written.fetch_add(buf.len() as u64, Ordering::Relaxed);
     stream.flush().map_err(io)?;
-    stream.shutdown(std::net::Shutdown::Write).map_err(io)
+    stream.shutdown(std::net::Shutdown::Write).map_err(io)?;
+    delivered.store(true, Ordering::Relaxed);
+    let until = Instant::now() + LINGER;
+    let mut scratch = [0u8; 4096];
+    while let Some(left) = until.checked_duration_since(Instant::now()) {
+        if left.is_zero() || stream.set_read_timeout(Some(left)).is_err() {
+            break;
+        }
+        match stream.read(&mut scratch) {
+            Ok(0) | Err(_) => break,
+            Ok(_) => {}
+        }
+    }
+    Ok(())
 }
 
 impl Sink for TcpSink {
@@ -525,20 +554,25 @@ impl Sink for TcpSink {
             Err(_) => Vec::new(),
         };
         // Every queue is closed at once, then written within one deadline for all.
-        let clients: Vec<(JoinHandle<()>, Option<TcpStream>)> = clients
+        let clients: Vec<(JoinHandle<()>, Option<TcpStream>, Arc<AtomicBool>)> = clients
             .into_iter()
             .map(|c| {
                 drop(c.tx);
-                (c.thread, c.stream)
+                (c.thread, c.stream, c.delivered)
             })
             .collect();
         let deadline = Instant::now() + self.config.finish_deadline;
-        while Instant::now() < deadline && clients.iter().any(|(t, _)| !t.is_finished()) {
+        while Instant::now() < deadline && clients.iter().any(|(t, _, _)| !t.is_finished()) {
             std::thread::sleep(Duration::from_millis(10));
         }
-        for (thread, stream) in clients {
+        for (thread, stream, delivered) in clients {
             if thread.is_finished() {
                 let _ = thread.join();
+                continue;
+            }
+            if delivered.load(Ordering::Relaxed) {
+                // Everything written; the client has not closed its side yet: not cut off
+                // (that could reset what it has still to read), its thread ends on its own.
                 continue;
             }
             // Still writing at the deadline (a client reading slowly): cut it off. Its
@@ -615,6 +649,46 @@ mod tests {
             std::thread::sleep(Duration::from_millis(5));
         }
         panic!("{} clients, expected {n}", sink.client_count());
+    }
+
+    /// A client that sent bytes we never read still gets everything up to the end, also when
+    /// it reads only after we finished: the connection is shut and closed without a reset (a
+    /// close with unread input resets it, and the reset makes the client's kernel discard what
+    /// it had not read yet).
+    #[test]
+    fn a_client_that_talked_still_reads_the_last_message_after_the_end() {
+        use std::io::Read as _;
+        let mut sink = TcpSink::new(TcpConfig::new("127.0.0.1:0", 64, 48)).unwrap();
+        let mut client = TcpStream::connect(sink.local_addr()).unwrap();
+        client.write_all(&[7u8; 4096]).unwrap();
+        wait_for_clients(&sink, 1);
+        let events: Vec<Event> = (0..50_000)
+            .map(|i| Event::new(i * 3, (i % 64) as u16, (i % 48) as u16, i % 2 == 0))
+            .collect();
+        for chunk in events.chunks(5_000) {
+            sink.send(chunk).unwrap();
+        }
+        // The client reads only after the sink has finished and its thread let go.
+        let reader = std::thread::spawn(move || {
+            std::thread::sleep(Duration::from_millis(300));
+            client
+                .set_read_timeout(Some(Duration::from_secs(10)))
+                .unwrap();
+            let mut bytes = Vec::new();
+            let read = client.read_to_end(&mut bytes);
+            (read.map(|_| ()), bytes)
+        });
+        sink.finish().unwrap();
+        let (read, bytes) = reader.join().unwrap();
+        read.expect("the connection ended by a reset, not a close");
+        let mut r = Reader::new_stream(std::io::Cursor::new(bytes)).unwrap();
+        let mut got = Vec::new();
+        while let Some(item) = r.next_item().unwrap() {
+            if let Item::Events(e) = item {
+                got.extend(e);
+            }
+        }
+        assert_eq!(got, events);
     }
 
     #[test]
