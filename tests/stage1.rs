@@ -489,8 +489,10 @@ fn flickering_light_fires_every_cycle_on_a_still_scene() {
 }
 
 /// Noise costs time in proportion to the events drawn, not to the gap between frames: frames a
-/// year apart, and at a time near 2^62 us, finish at once with at most a second's noise; rates
-/// no pixel can fire at are refused.
+/// year apart, and 2^53 us apart (the longest span a frame interval may have, 285 years), finish
+/// at once with at most a second's noise; a frame past the range times may take (2^61 us) or
+/// further from the last than 2^53 us is a clear error, not a hang; rates no pixel can fire at
+/// are refused.
 #[test]
 fn noise_work_is_bounded_for_any_gap() {
     let (w, h) = (64u16, 48u16);
@@ -506,7 +508,12 @@ fn noise_work_is_bounded_for_any_gap() {
         exposure_us: None,
     };
     let mut events = Vec::new();
-    for t in [0, 40_000, 31_536_000_000_000, 1 << 62] {
+    for t in [
+        0,
+        40_000,
+        31_536_000_000_000,
+        31_536_000_000_000 + (1 << 53),
+    ] {
         let before = events.len();
         sim.step(&frame(t), &mut events).unwrap();
         // Poisson counts: far below 10x a second's mean (and every time inside the interval).
@@ -516,6 +523,14 @@ fn noise_work_is_bounded_for_any_gap() {
             events.len() - before
         );
         assert!(events[before..].iter().all(|e| e.t <= t));
+    }
+    let last = 31_536_000_000_000 + (1 << 53);
+    for (t, says) in [
+        (1 << 62, "out of range"),
+        (last + (1 << 53) + 1, "longer than"),
+    ] {
+        let err = sim.step(&frame(t), &mut events).unwrap_err().to_string();
+        assert!(err.contains(says), "{t}: {err}");
     }
     for key in ["leak_hz", "shot_noise_hz", "hot_pixel_hz"] {
         let mut bad = cfg.clone();
