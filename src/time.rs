@@ -11,9 +11,9 @@
 //!   [`MAX_SPAN_US`] (2^53 us, 285 years), so that it is exact as an `f64`, which the pixel
 //!   model and the samplers compute with.
 //!
-//! [`check`] and [`span`] give a clear error naming what was out of range; [`from_f64_us`]
-//! takes a float (NaN and infinities refused, never cast to `i64::MIN`), [`checked_add`] a
-//! sum that has to stay in range.
+//! [`check`] and [`span`] give a clear error naming what was out of range, [`checked_add`] a
+//! sum that has to stay in range. (Floats from Python are checked finite and in range before
+//! they are cast, in the package's own layer.)
 
 use crate::error::{Error, Result};
 
@@ -35,17 +35,6 @@ pub fn check(what: &'static str, t: i64) -> Result<i64> {
         Ok(t)
     } else {
         Err(out_of_range(what, &t.to_string()))
-    }
-}
-
-/// `v` microseconds (a float: a Python array, a computed time) rounded to the nearest
-/// microsecond, where it is finite and within `±MAX_ABS_US`; NaN and infinities are refused.
-pub fn from_f64_us(what: &'static str, v: f64) -> Result<i64> {
-    let r = v.round();
-    if r.is_finite() && r.abs() <= MAX_ABS_US as f64 {
-        Ok(r as i64)
-    } else {
-        Err(out_of_range(what, &v.to_string()))
     }
 }
 
@@ -107,23 +96,6 @@ mod tests {
                 e.contains("frame time") && e.contains("out of range"),
                 "{e}"
             );
-        }
-    }
-
-    #[test]
-    fn floats_are_refused_unless_finite_and_in_range() {
-        assert_eq!(from_f64_us("t", 1.4).unwrap(), 1);
-        assert_eq!(from_f64_us("t", -2.6).unwrap(), -3);
-        assert_eq!(from_f64_us("t", MAX_ABS_US as f64).unwrap(), MAX_ABS_US);
-        for v in [
-            f64::NAN,
-            f64::INFINITY,
-            f64::NEG_INFINITY,
-            9.2e18,
-            -9.3e18,
-            1e300,
-        ] {
-            assert!(from_f64_us("t", v).is_err(), "{v}");
         }
     }
 
