@@ -34,6 +34,7 @@ pub(crate) mod pipeline;
 pub(crate) mod process;
 pub(crate) mod realtime;
 pub mod render;
+pub mod repair;
 pub(crate) mod rounding;
 pub mod sink;
 pub(crate) mod source;

@@ -6,6 +6,12 @@
 //!
 //! For plain `spif`, which carries no timestamps, the arrival time is the event time: events
 //! written to a file get their arrival time, in microseconds since the first datagram.
+//!
+//! Times from the network enter here: a datagram or packet holding an event time outside
+//! `±`[`crate::time::MAX_ABS_US`] is refused whole and counted ([`ListenReport::out_of_range`]),
+//! as is, when writing to a file, one whose times go back ([`ListenReport::out_of_order`]), so
+//! that no sender can wrap what the listener computes or end its file. The first refusal of
+//! each kind is logged with its reason.
 
 use std::io::{BufRead, Read};
 use std::net::{TcpStream, UdpSocket};
@@ -73,6 +79,15 @@ pub struct ListenReport {
     /// Datagrams whose length is not a whole number of events (cut short by the sender or a
     /// receiver buffer).
     pub ragged: u64,
+    /// Datagrams (UDP) or packets (TCP) refused whole, their events neither counted nor
+    /// written: one holding an event time outside `±`[`crate::time::MAX_ABS_US`] (see
+    /// [`crate::time`]).
+    pub out_of_range: u64,
+    /// Datagrams or packets refused whole when writing to a file, their events neither counted
+    /// nor written: one whose event times go back (within it, or before the last event
+    /// written), which an event file cannot hold (datagrams reordered on the way, a sender
+    /// restarted, a 32-bit time wrapped).
+    pub out_of_order: u64,
     /// Seconds from the first arrival to the last.
     pub seconds: f64,
     /// Events per second over that span.
@@ -152,6 +167,14 @@ impl Offsets {
     }
 }
 
+/// Why a message was refused (see [`ListenReport::out_of_range`] and
+/// [`ListenReport::out_of_order`]).
+#[derive(Debug, Clone, Copy)]
+enum Refusal {
+    OutOfRange,
+    OutOfOrder,
+}
+
 struct Tally {
     started: Option<Instant>,
     last: Option<Instant>,
@@ -160,6 +183,11 @@ struct Tally {
     offsets: Offsets,
     per_ms: (u64, u64),
     out: Option<Box<dyn EventEncoder + Send>>,
+    /// The time of the last event written to `out`.
+    written_t: Option<i64>,
+    /// The latest arrival time given to untimestamped events, us: arrival stamps mapped from
+    /// the kernel's clock may step back a little, and those events keep time order.
+    arrival_t: i64,
 }
 
 impl Tally {
@@ -171,48 +199,104 @@ impl Tally {
             offsets: Offsets::new(),
             per_ms: (0, 0),
             out,
+            written_t: None,
+            arrival_t: 0,
         }
     }
 
+    /// Counts a message that arrived `at` (arrival stamps may step back a little: differences
+    /// saturate at zero).
     fn arrive(&mut self, at: Instant, bytes: usize) {
         let first = *self.started.get_or_insert(at);
         if let Some(last) = self.last {
-            let gap = (at - last).as_secs_f64() * 1e3;
+            let gap = at.saturating_duration_since(last).as_secs_f64() * 1e3;
             self.report.largest_gap_ms = self.report.largest_gap_ms.max(gap);
         }
         self.last = Some(at);
-        let ms = (at - first).as_millis() as u64;
+        let ms = u64::try_from(at.saturating_duration_since(first).as_millis()).unwrap_or(u64::MAX);
         self.per_ms = if ms == self.per_ms.0 {
-            (ms, self.per_ms.1 + 1)
+            (ms, self.per_ms.1.saturating_add(1))
         } else {
             (ms, 1)
         };
         self.report.max_messages_per_ms = self.report.max_messages_per_ms.max(self.per_ms.1);
-        self.report.messages += 1;
-        self.report.bytes += bytes as u64;
+        self.report.messages = self.report.messages.saturating_add(1);
+        self.report.bytes = self.report.bytes.saturating_add(bytes as u64);
     }
 
+    /// Takes one message's events: refuses it whole (counted) where a time is out of range, or
+    /// goes back while writing to a file; else counts them, measures arrival minus event time
+    /// (`timestamped`) or gives them their arrival time, and writes them.
     fn events(&mut self, at: Instant, events: &mut [Event], timestamped: bool) -> Result<()> {
-        let since = |at: Instant, first: Option<Instant>| {
-            first.map_or(0, |f| (at - f).as_micros().min(i64::MAX as u128) as i64)
-        };
-        let arrival = since(at, self.started);
-        for e in events.iter_mut() {
-            if timestamped {
-                self.offsets.push(arrival.saturating_sub(e.t));
-            } else {
-                e.t = arrival;
+        // Microseconds since the first arrival, at most 2^61 (73,000 years): in range.
+        let arrival = self.started.map_or(0, |f| {
+            let us = at.saturating_duration_since(f).as_micros();
+            i64::try_from(us).map_or(crate::time::MAX_ABS_US, |us| {
+                us.min(crate::time::MAX_ABS_US)
+            })
+        });
+        if timestamped {
+            // Times enter here: every later difference of two fits (see `crate::time`).
+            let bad = events.iter().find_map(|e| {
+                crate::time::check("event time", e.t)
+                    .err()
+                    .map(|err| format!("the event at ({}, {}): {err}", e.x, e.y))
+            });
+            if let Some(why) = bad {
+                self.refuse(Refusal::OutOfRange, &why);
+                return Ok(());
+            }
+        } else {
+            self.arrival_t = self.arrival_t.max(arrival);
+            for e in events.iter_mut() {
+                e.t = self.arrival_t;
+            }
+        }
+        if self.out.is_some() {
+            let mut last = self.written_t.unwrap_or(i64::MIN);
+            for e in events.iter() {
+                if e.t < last {
+                    let why = format!("event time {} us comes before {last} us", e.t);
+                    self.refuse(Refusal::OutOfOrder, &why);
+                    return Ok(());
+                }
+                last = e.t;
+            }
+        }
+        if timestamped {
+            for e in events.iter() {
+                // Both within 2^61 us: the difference fits.
+                self.offsets.push(arrival - e.t);
             }
         }
         if let (Some(f), Some(l)) = (events.first(), events.last()) {
             self.report.first_t.get_or_insert(f.t);
             self.report.last_t = Some(l.t);
         }
-        self.report.events += events.len() as u64;
+        self.report.events = self.report.events.saturating_add(events.len() as u64);
         if let Some(out) = self.out.as_mut() {
             out.write(events)?;
+            if let Some(l) = events.last() {
+                self.written_t = Some(l.t);
+            }
         }
         Ok(())
+    }
+
+    /// Counts a refused message; logs the first of each kind with `why`.
+    fn refuse(&mut self, kind: Refusal, why: &str) {
+        let (count, what) = match kind {
+            Refusal::OutOfRange => (&mut self.report.out_of_range, "a time out of range"),
+            Refusal::OutOfOrder => (&mut self.report.out_of_order, "times that go back"),
+        };
+        *count = count.saturating_add(1);
+        if *count == 1 {
+            tracing::warn!(
+                "listen: refused a message with {what} ({why}); further ones are counted in the report"
+            );
+        } else {
+            tracing::debug!("listen: refused a message with {what} ({why})");
+        }
     }
 
     fn finish(mut self) -> Result<ListenReport> {
@@ -470,6 +554,135 @@ mod tests {
         let p50_us = s.p50_ms * 1000.0;
         assert!((p50_us / (n as f64 / 2.0) - 1.0).abs() < 0.01, "{s:?}");
         assert!(Offsets::new().spread().unwrap().is_none());
+    }
+
+    fn at(ts: &[i64]) -> Vec<Event> {
+        ts.iter().map(|&t| Event::new(t, 1, 2, true)).collect()
+    }
+
+    /// A datagram with a time outside ±2^61 us (the ends of `i64`, one past the range) is
+    /// refused whole and counted; the range's ends themselves and times that go back are taken
+    /// (nothing is written), and what is computed from them does not wrap.
+    #[test]
+    fn times_out_of_range_refuse_their_datagram() {
+        use crate::time::MAX_ABS_US;
+        let mut tally = Tally::new(None);
+        let now = Instant::now();
+        for bad in [i64::MIN, i64::MAX, MAX_ABS_US + 1, -MAX_ABS_US - 1] {
+            tally.arrive(now, 26);
+            tally.events(now, &mut at(&[0, bad]), true).unwrap();
+        }
+        assert_eq!(tally.report.out_of_range, 4);
+        assert_eq!((tally.report.events, tally.report.messages), (0, 4));
+        assert_eq!(tally.report.first_t, None);
+        for ts in [[MAX_ABS_US, -MAX_ABS_US], [5, 3]] {
+            let later = now + Duration::from_millis(1);
+            tally.arrive(later, 26);
+            tally.events(later, &mut at(&ts), true).unwrap();
+        }
+        let r = tally.finish().unwrap();
+        assert_eq!(
+            (r.events, r.messages, r.out_of_range, r.out_of_order),
+            (4, 6, 4, 0)
+        );
+        assert_eq!((r.first_t, r.last_t), (Some(MAX_ABS_US), Some(3)));
+        // Offsets from -2^61 to 2^61 us (plus the arrival): a spread of 2^62 us, exact.
+        let spread = r.arrival_spread.unwrap();
+        assert_eq!(spread.count, 4);
+        assert_eq!(spread.max_ms, (2 * MAX_ABS_US) as f64 / 1000.0);
+        // Plain spif: whatever the words hold, events get their arrival time, which never
+        // goes back (a stamp 4 ms early keeps the latest).
+        let mut tally = Tally::new(None);
+        tally.arrive(now, 4);
+        let mut first = at(&[i64::MIN]);
+        tally
+            .events(now + Duration::from_millis(5), &mut first, false)
+            .unwrap();
+        let mut early = at(&[i64::MAX]);
+        tally.arrive(now + Duration::from_millis(1), 4);
+        tally
+            .events(now + Duration::from_millis(1), &mut early, false)
+            .unwrap();
+        assert_eq!((first[0].t, early[0].t), (5000, 5000));
+        assert_eq!((tally.report.out_of_range, tally.report.events), (0, 2));
+    }
+
+    /// Writing to a file, a datagram whose times go back (within it or before what was
+    /// written) is refused whole and counted, and the file holds the rest, in order.
+    #[test]
+    fn times_that_go_back_are_refused_when_writing() {
+        let dir = std::env::temp_dir().join(format!("v2ce-listen-order-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("got.csv");
+        let out = format::create(&path, format::Format::Csv, 8, 8).unwrap();
+        let mut tally = Tally::new(Some(out));
+        let now = Instant::now();
+        for ts in [&[1, 2][..], &[0], &[3, 2], &[2, 4], &[i64::MIN], &[5]] {
+            tally.arrive(now, 13 * ts.len());
+            tally.events(now, &mut at(ts), true).unwrap();
+        }
+        let r = tally.finish().unwrap();
+        assert_eq!((r.out_of_order, r.out_of_range, r.events), (2, 1, 5));
+        let got: Vec<i64> = format::read_events(&path)
+            .unwrap()
+            .events
+            .events()
+            .iter()
+            .map(|e| e.t)
+            .collect();
+        assert_eq!(got, [1, 2, 2, 4, 5]);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// Over a socket: `t64` datagrams carrying the ends of `i64` and times just past 2^61 us
+    /// are refused and reported; the others, decreasing ones included, are taken.
+    #[test]
+    fn listen_refuses_datagrams_with_times_out_of_range() {
+        use crate::time::MAX_ABS_US;
+        let format = UdpFormat::T64X16Y16On8;
+        let options = ListenOptions {
+            listen: Listen::Udp {
+                bind: "127.0.0.1:0".into(),
+                format,
+            },
+            out: None,
+            size: (8, 8),
+            duration: Some(Duration::from_secs(20)),
+            idle: Duration::from_millis(500),
+            max_events: None,
+            recv_buffer: 0,
+            priority: 0,
+        };
+        let (tx, rx) = std::sync::mpsc::channel();
+        let listener = std::thread::spawn(move || {
+            let stop = AtomicBool::new(false);
+            listen(&options, &stop, |a| tx.send(a.to_string()).unwrap())
+        });
+        let address = rx.recv().unwrap();
+        let socket = UdpSocket::bind("127.0.0.1:0").unwrap();
+        let datagrams: [&[i64]; 7] = [
+            &[10, 20],
+            &[i64::MIN],
+            &[30, i64::MAX],
+            &[MAX_ABS_US + 1],
+            &[-MAX_ABS_US - 1, 0],
+            &[15, 5],
+            &[MAX_ABS_US, -MAX_ABS_US],
+        ];
+        for ts in datagrams {
+            let mut bytes = Vec::new();
+            at(ts).iter().for_each(|e| format.encode(e, &mut bytes));
+            socket.send_to(&bytes, &address).unwrap();
+        }
+        let r = listener.join().unwrap().unwrap();
+        assert_eq!(
+            (r.messages, r.out_of_range, r.out_of_order),
+            (7, 4, 0),
+            "{r:?}"
+        );
+        assert_eq!(r.events, 6, "{r:?}");
+        assert_eq!((r.first_t, r.last_t), (Some(10), Some(-MAX_ABS_US)));
+        assert_eq!(r.arrival_spread.map(|s| s.count), Some(6));
     }
 
     #[test]

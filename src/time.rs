@@ -34,7 +34,7 @@ pub fn check(what: &'static str, t: i64) -> Result<i64> {
     if in_range(t) {
         Ok(t)
     } else {
-        Err(out_of_range(what, &t.to_string()))
+        Err(out_of_range(what, &format!("{t} us")))
     }
 }
 
@@ -64,14 +64,15 @@ pub fn span(what: &'static str, t0: i64, t1: i64) -> Result<i64> {
 pub fn checked_add(what: &'static str, t: i64, d: i64) -> Result<i64> {
     t.checked_add(d)
         .filter(|&s| in_range(s))
-        .ok_or_else(|| out_of_range(what, &format!("{t} + {d}")))
+        .ok_or_else(|| out_of_range(what, &format!("{t} + {d} us")))
 }
 
-fn out_of_range(what: &'static str, value: &str) -> Error {
+/// The error for a time `value` (with its unit, e.g. `"5 s"`) outside `±`[`MAX_ABS_US`].
+pub fn out_of_range(what: &'static str, value: &str) -> Error {
     Error::invalid(
         what,
         format!(
-            "{value} us is out of range: times must lie within ±{MAX_ABS_US} us (2^61, about 73,000 years)"
+            "{value} is out of range: times must lie within ±{MAX_ABS_US} us (2^61, about 73,000 years)"
         ),
     )
 }

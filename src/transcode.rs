@@ -77,7 +77,9 @@ pub fn transcode(
     report.map_err(|e| out.explain(e))
 }
 
-fn write_all(
+/// Writes the events of `decoder` (reading `input`) to `output` in `format` for a `size`
+/// sensor, checking their order and range first (an error names the input's event).
+pub(crate) fn write_all(
     input: &Path,
     decoder: &mut dyn format::EventDecoder,
     output: &Path,

@@ -406,6 +406,7 @@ fn help_texts_are_unchanged() {
         "convert",
         "transcode",
         "info",
+        "repair",
         "eval",
         "eval stage1",
         "eval stage2",

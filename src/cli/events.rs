@@ -1,4 +1,5 @@
-//! `v2ce transcode`, `v2ce info` and `v2ce render`: event files in, event files or pictures out.
+//! `v2ce transcode`, `v2ce info`, `v2ce repair` and `v2ce render`: event files in, event files
+//! or pictures out.
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -38,6 +39,20 @@ pub struct InfoArgs {
     pub(crate) json: bool,
 }
 
+/// The flags of `v2ce repair`.
+#[derive(Args)]
+pub struct RepairArgs {
+    /// The file a killed writer left: .aedat4, .raw, .csv (cut after the last whole packet,
+    /// word or line), .npz or .h5/.hdf5 (written from the journal beside it).
+    pub(crate) file: PathBuf,
+    /// Write the repaired file here and leave FILE as it is (default: repair FILE in place).
+    #[arg(short, long)]
+    pub(crate) out: Option<PathBuf>,
+    /// Overwrite an existing --out file.
+    #[arg(long)]
+    pub(crate) force: bool,
+}
+
 /// The flags of `v2ce render`.
 #[derive(Args)]
 pub struct RenderArgs {
@@ -61,6 +76,16 @@ pub struct RenderArgs {
     /// Overwrite an existing output file.
     #[arg(long)]
     pub(crate) force: bool,
+}
+
+/// Runs `v2ce repair`.
+pub fn repair(args: RepairArgs) -> Result<()> {
+    if let Some(out) = &args.out {
+        check_output(out, args.force)?;
+    }
+    let report = crate::repair::repair(&args.file, args.out.as_deref())?;
+    eprintln!("v2ce: {report}");
+    Ok(())
 }
 
 /// Runs `v2ce transcode`.

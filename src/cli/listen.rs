@@ -99,11 +99,14 @@ pub fn listen(args: ListenArgs) -> Result<()> {
         println!("{text}");
     } else {
         println!(
-            "{} events in {} messages ({} ragged) over {:.2} s: {:.0} events/s; largest gap \
-             {:.1} ms; at most {} messages in one ms{}",
+            "{} events in {} messages ({} ragged, {} refused for times out of range, {} for \
+             times going back) over {:.2} s: {:.0} events/s; largest gap {:.1} ms; at most {} \
+             messages in one ms{}",
             report.events,
             report.messages,
             report.ragged,
+            report.out_of_range,
+            report.out_of_order,
             report.seconds,
             report.events_per_s,
             report.largest_gap_ms,

@@ -19,7 +19,7 @@ use self::batch::BatchArgs;
 use self::convert::ConvertArgs;
 use self::dataset::{CalibrateArgs, DatasetCommand};
 use self::eval::Eval;
-use self::events::{InfoArgs, RenderArgs, TranscodeArgs};
+use self::events::{InfoArgs, RenderArgs, RepairArgs, TranscodeArgs};
 use self::listen::ListenArgs;
 use self::model::ModelCommand;
 use self::run::{BenchArgs, BenchCommand, RunArgs};
@@ -54,6 +54,9 @@ pub enum Command {
     Transcode(TranscodeArgs),
     /// Print an event file's sensor size, event count, time span, rate and ON ratio.
     Info(InfoArgs),
+    /// Make an event file a killed run left readable: cut after its last whole packet, word or
+    /// line, or write an .npz / .h5 from its journal.
+    Repair(RepairArgs),
     /// The live daemon: capture (a camera, a replayed file, or the bundled fixture video),
     /// simulate, and stream events over UDP / TCP / to a file until stopped.
     Run(RunArgs),
@@ -94,6 +97,7 @@ impl Command {
             Command::Convert(args) => convert::convert(args),
             Command::Transcode(args) => events::transcode(args),
             Command::Info(args) => events::info(args),
+            Command::Repair(args) => events::repair(args),
             Command::Run(args) => run::run(args),
             Command::Devices => run::devices(),
             Command::Bench(BenchArgs {

@@ -105,6 +105,10 @@ impl UdpFormat {
 
     /// Decodes one datagram (the inverse of [`UdpFormat::encode`]; times are what the format
     /// carries: full for `t64`, modulo 2^32 for `t32` and timestamped SPIF, -1 for plain SPIF).
+    ///
+    /// Times are not checked here: a `t64` sender may put any `i64` in them, so a receiver that
+    /// computes with them checks them first ([`crate::time::check`]; `v2ce listen` refuses such a
+    /// datagram).
     pub fn decode(self, datagram: &[u8], out: &mut Vec<Event>) {
         let u16_at = |b: &[u8], i: usize| u16::from_le_bytes([b[i], b[i + 1]]);
         let u32_at = |b: &[u8], i: usize| u32::from_le_bytes([b[i], b[i + 1], b[i + 2], b[i + 3]]);

@@ -29,6 +29,9 @@
 //! and an event farther from the first is refused. Events must come in time order and inside
 //! the sensor size given to [`Encoder::create`]. The files need HDF5 1.10 or later to read
 //! (every h5py of the last years).
+//! Every event also goes to the output's journal ([`super::journal`], 13 bytes an event, flushed
+//! with the encoder), removed once the file is closed: the file is whole only then, so a run
+//! killed before leaves the journal, from which `v2ce repair` writes the file.
 //!
 //! Reading: any integer types are accepted for the four columns (checked against the event's
 //! ranges), polarity 1 is ON and 0 or -1 OFF, `t_offset` defaults to 0 when absent, and the
@@ -43,6 +46,7 @@ use std::path::{Path, PathBuf};
 
 use rust_hdf5 as h5;
 
+use super::journal::Journal;
 use super::{check_event, EventDecoder, EventEncoder};
 use crate::error::{Error, Result};
 use crate::event::Event;
@@ -157,6 +161,9 @@ pub struct Encoder {
     bt: Vec<i64>,
     bp: Vec<u8>,
     bms: Vec<u64>,
+    /// Every event taken, for `v2ce repair` should the run be killed before the file is
+    /// closed (see [`super::journal`]).
+    journal: Journal,
 }
 
 impl Encoder {
@@ -189,7 +196,9 @@ impl Encoder {
                 .and_then(|a| a.write_numeric(&value))
                 .map_err(h5err(name))?;
         }
+        let journal = Journal::create(path, width, height)?;
         Ok(Encoder {
+            journal,
             columns: Some(columns),
             file: Some(file),
             path: path.to_path_buf(),
@@ -286,8 +295,9 @@ impl Encoder {
     }
 }
 
-impl EventEncoder for Encoder {
-    fn write(&mut self, events: &[Event]) -> Result<()> {
+impl Encoder {
+    /// Takes `events` into the buffers, counting in `taken` those taken.
+    fn take(&mut self, events: &[Event], taken: &mut usize) -> Result<()> {
         self.columns()?;
         for e in events {
             check_event(e, self.last_t, self.width, self.height)?;
@@ -334,14 +344,30 @@ impl EventEncoder for Encoder {
             self.bt.push(rel);
             self.bp.push(e.on as u8);
             self.count += 1;
+            *taken += 1;
             if self.bx.len() >= CHUNK {
                 self.flush_events()?;
             }
         }
         Ok(())
     }
+}
 
-    /// Written whole only at the end (the archive's or the file's index comes last).
+impl EventEncoder for Encoder {
+    fn write(&mut self, events: &[Event]) -> Result<()> {
+        let mut taken = 0;
+        let took = self.take(events, &mut taken);
+        self.journal.append(&events[..taken])?;
+        took
+    }
+
+    /// The events go to the journal, which a killed run leaves for `v2ce repair`.
+    fn flush(&mut self) -> Result<()> {
+        self.journal.flush()
+    }
+
+    /// Written whole only at the end (the file's index comes last); until then `v2ce repair`
+    /// makes the file from its journal.
     fn readable_after_flush(&self) -> bool {
         false
     }
@@ -353,7 +379,9 @@ impl EventEncoder for Encoder {
             return Err(bad("finished twice"));
         };
         drop(columns);
-        file.close().map_err(h5err("cannot close the file"))
+        file.close().map_err(h5err("cannot close the file"))?;
+        self.journal.complete();
+        Ok(())
     }
 }
 

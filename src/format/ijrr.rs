@@ -40,6 +40,28 @@ pub fn parse_seconds_us(s: &str) -> Option<i64> {
     Some(if neg { -us } else { us })
 }
 
+/// Whether `s` reads as a number of seconds, in range or not (NaN and infinities included):
+/// what tells a time field from a word, so that a frame list with a time out of range is still
+/// recognised as one, and its error names the line.
+pub fn is_number(s: &str) -> bool {
+    parse_seconds_us(s).is_some() || s.parse::<f64>().is_ok()
+}
+
+/// A time field in seconds as microseconds checked to lie within `±`[`crate::time::MAX_ABS_US`]:
+/// `None` where `s` is no number (the caller says what it expected), an error naming the range
+/// (as [`crate::time::check`] words it, under `what`) where `s` is a number out of it,
+/// infinities included (NaN is no number).
+pub fn seconds_in_range(what: &'static str, s: &str) -> Option<Result<i64>> {
+    if let Some(t) = parse_seconds_us(s) {
+        return Some(crate::time::check(what, t));
+    }
+    if s.parse::<f64>().ok()?.is_nan() {
+        return None;
+    }
+    // Past what an i64 of microseconds holds: the seconds as written.
+    Some(Err(crate::time::out_of_range(what, &format!("{s} s"))))
+}
+
 /// The longest line accepted, in bytes.
 const MAX_LINE: u64 = 4096;
 
@@ -138,15 +160,18 @@ impl<R: BufRead> EventDecoder for Decoder<R> {
     }
 }
 
-/// Reads the frame times of an IJRR `images.txt`.
+/// Reads the frame times of an IJRR `images.txt`, each checked to be in range
+/// ([`crate::time`]; an error names the file and line).
 pub fn read_frame_times(path: &Path) -> Result<Vec<i64>> {
     let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
     let mut lines = Lines::new(BufReader::new(file));
     let mut times = Vec::new();
     while let Some((line, f)) = lines.next_fields().map_err(|m| Error::format(path, m))? {
-        let t = f.first().and_then(|s| parse_seconds_us(s)).ok_or_else(|| {
-            Error::format(path, format!("line {line}: expected 't_seconds path'"))
-        })?;
+        let t = f
+            .first()
+            .and_then(|s| seconds_in_range("frame time", s))
+            .ok_or_else(|| Error::format(path, format!("line {line}: expected 't_seconds path'")))?
+            .map_err(|e| Error::format(path, format!("line {line}: {e}")))?;
         times.push(t);
     }
     Ok(times)
@@ -171,6 +196,44 @@ mod tests {
         for bad in ["", ".", "a", "1.2.3", "1e999", "--1"] {
             assert_eq!(parse_seconds_us(bad), None, "{bad}");
         }
+    }
+
+    #[test]
+    fn frame_times_out_of_range_name_the_line_and_the_range() {
+        assert_eq!(seconds_in_range("t", "1.5").unwrap().unwrap(), 1_500_000);
+        assert!(seconds_in_range("t", "a").is_none());
+        assert!(seconds_in_range("t", "nan").is_none());
+        assert!(is_number("nan") && is_number("-9223372036854") && !is_number("a.png"));
+        let bound = crate::time::MAX_ABS_US.to_string();
+        for s in [
+            "-9223372036854",
+            "9223372036854.775807",
+            "1e300",
+            "inf",
+            "2305843009213.693953",
+        ] {
+            let e = seconds_in_range("frame time", s)
+                .unwrap()
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("frame time") && e.contains("out of range") && e.contains(&bound),
+                "{s}: {e}"
+            );
+        }
+        let dir = std::env::temp_dir().join(format!("v2ce-ijrr-range-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let list = dir.join("images.txt");
+        std::fs::write(&list, "0 a.png\n\n1e300 b.png\n").unwrap();
+        let e = read_frame_times(&list).unwrap_err().to_string();
+        assert!(
+            e.contains("images.txt")
+                && e.contains("line 3")
+                && e.contains("1e300 s is out of range")
+                && e.contains(&bound),
+            "{e}"
+        );
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]

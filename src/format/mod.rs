@@ -21,6 +21,7 @@ pub mod evt2;
 pub mod evt3;
 pub mod hdf5;
 pub mod ijrr;
+pub mod journal;
 pub mod npz;
 pub mod raw;
 
@@ -313,7 +314,7 @@ pub fn create(
         Format::Evt2 => Box::new(evt2::Encoder::new(buffered()?, width, height).map_err(wrap)?),
         Format::Evt3 => Box::new(evt3::Encoder::new(buffered()?, width, height).map_err(wrap)?),
         Format::Csv => Box::new(csv::Encoder::new(buffered()?).map_err(wrap)?),
-        Format::Npz => Box::new(npz::Encoder::new(buffered()?, path).map_err(wrap)?),
+        Format::Npz => Box::new(npz::Encoder::new(buffered()?, path, width, height).map_err(wrap)?),
         // The HDF5 library creates the file itself.
         Format::Hdf5 => Box::new(hdf5::Encoder::create(path, width, height).map_err(wrap)?),
     };
@@ -364,11 +365,18 @@ impl PartialOutput {
         if !self.partial.exists() {
             return e;
         }
-        let kept = format!(
+        let mut kept = format!(
             "{} was not written; what was written before this is in {}",
             self.path.display(),
             self.partial.display()
         );
+        // `.npz` and `.h5` are whole only at their end: their journals hold what they took.
+        if journal::path_for(&self.partial).exists() {
+            kept.push_str(&format!(
+                " (`v2ce repair {}` makes it readable)",
+                self.partial.display()
+            ));
+        }
         match e {
             Error::Interrupted(why) => Error::Interrupted(format!("{why}; {kept}")),
             e => Error::Run(format!("{e}; {kept}")),

@@ -4,22 +4,21 @@
 //! polarity 1 = ON, 0 = OFF; V2CE_SPEC.md section 5.5). `np.load(f)["event_stream"]` reads it.
 //!
 //! The format has no sensor size. The array's length is in its header, before the records, so
-//! the encoder spools records to a temporary file beside the output and writes the archive at
-//! the end (memory stays flat; the disk holds the records twice until then). Archives over
-//! 4 GiB are written as zip64, which NumPy reads.
+//! the encoder keeps records in the output's journal beside it ([`super::journal`]) and writes
+//! the archive at the end (memory stays flat; the disk holds the records twice until then). A
+//! run killed before its end leaves the journal, from which `v2ce repair` writes the archive.
+//! Archives over 4 GiB are written as zip64, which NumPy reads.
 
 use std::io::{BufReader, BufWriter, Read, Seek, Write};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
+use super::journal::{Journal, RECORD};
 use super::{EventDecoder, EventEncoder};
 use crate::error::{Error, Result};
 use crate::event::Event;
 
 /// The array's name in the archive.
 pub const ARRAY: &str = "event_stream";
-
-/// Bytes per record.
-const RECORD: usize = 13;
 
 /// The record type as NumPy writes it for the toolbox's record array.
 const DESCR: &str = "[('timestamp', '<i8'), ('x', '<i2'), ('y', '<i2'), ('polarity', '|i1')]";
@@ -101,36 +100,24 @@ pub fn write_arrays(path: &Path, arrays: &[Array], compressed: bool) -> Result<(
 /// Writes the toolbox's `.npz` to `out` (see the module docs).
 pub struct Encoder<W: Write + Seek> {
     out: Option<W>,
-    spool_path: PathBuf,
-    spool: BufWriter<std::fs::File>,
-    count: u64,
+    journal: Journal,
     last_t: i64,
 }
 
 impl<W: Write + Seek> Encoder<W> {
-    /// An encoder writing to `out`, spooling records to a temporary file beside `path`.
-    pub fn new(out: W, path: &Path) -> Result<Self> {
-        let spool_path = path.with_extension("npz.records");
-        let spool = std::fs::File::create(&spool_path).map_err(|e| Error::io(&spool_path, e))?;
+    /// An encoder writing to `out` (the file `path`), keeping its records in `path`'s journal
+    /// ([`super::journal`]) until the end; `width x height` is the sensor, for the journal.
+    pub fn new(out: W, path: &Path, width: u16, height: u16) -> Result<Self> {
         Ok(Encoder {
             out: Some(out),
-            spool_path,
-            spool: BufWriter::with_capacity(1 << 16, spool),
-            count: 0,
+            journal: Journal::create(path, width, height)?,
             last_t: i64::MIN,
         })
     }
 }
 
-impl<W: Write + Seek> Drop for Encoder<W> {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_file(&self.spool_path);
-    }
-}
-
 impl<W: Write + Seek> EventEncoder for Encoder<W> {
     fn write(&mut self, events: &[Event]) -> Result<()> {
-        let mut rec = [0u8; RECORD];
         for e in events {
             if e.t < self.last_t {
                 return Err(bad(format!("{} us comes before {} us", e.t, self.last_t)));
@@ -139,19 +126,18 @@ impl<W: Write + Seek> EventEncoder for Encoder<W> {
                 return Err(bad(format!("({}, {}) does not fit int16", e.x, e.y)));
             }
             self.last_t = e.t;
-            rec[..8].copy_from_slice(&e.t.to_le_bytes());
-            rec[8..10].copy_from_slice(&(e.x as i16).to_le_bytes());
-            rec[10..12].copy_from_slice(&(e.y as i16).to_le_bytes());
-            rec[12] = e.on as u8;
-            self.spool
-                .write_all(&rec)
-                .map_err(|e| Error::io(&self.spool_path, e))?;
         }
-        self.count += events.len() as u64;
-        Ok(())
+        // The journal's records are the toolbox's bytes while x and y fit int16.
+        self.journal.append(events)
     }
 
-    /// Written whole only at the end (the archive's or the file's index comes last).
+    /// The records go to the journal, which a killed run leaves for `v2ce repair`.
+    fn flush(&mut self) -> Result<()> {
+        self.journal.flush()
+    }
+
+    /// Written whole only at the end (the archive's or the file's index comes last); until
+    /// then `v2ce repair` makes the file from its journal.
     fn readable_after_flush(&self) -> bool {
         false
     }
@@ -160,21 +146,21 @@ impl<W: Write + Seek> EventEncoder for Encoder<W> {
         let Some(out) = self.out.take() else {
             return Err(bad("finished twice"));
         };
-        let spool_err = |e: std::io::Error| Error::io(self.spool_path.clone(), e);
-        self.spool.flush().map_err(spool_err)?;
-        let mut records = std::fs::File::open(&self.spool_path).map_err(spool_err)?;
+        let count = self.journal.len();
+        let mut records = self.journal.records()?;
         let mut zip = zip::ZipWriter::new(out);
         let options = zip::write::SimpleFileOptions::default()
             .compression_method(zip::CompressionMethod::Stored)
-            .large_file(self.count * RECORD as u64 > u32::MAX as u64 / 2);
+            .large_file(count * RECORD as u64 > u32::MAX as u64 / 2);
         let zerr = |e: zip::result::ZipError| bad(e.to_string());
         zip.start_file(format!("{ARRAY}.npy"), options)
             .map_err(zerr)?;
-        zip.write_all(&records_header(self.count))
+        zip.write_all(&records_header(count))
             .map_err(|e| bad(e.to_string()))?;
         std::io::copy(&mut records, &mut zip).map_err(|e| bad(e.to_string()))?;
         let mut out = zip.finish().map_err(zerr)?;
         out.flush().map_err(|e| bad(e.to_string()))?;
+        self.journal.complete();
         Ok(())
     }
 }
@@ -381,12 +367,12 @@ mod tests {
             .collect();
         {
             let file = std::fs::File::create(&path).unwrap();
-            let mut enc = Encoder::new(BufWriter::new(file), &path).unwrap();
+            let mut enc = Encoder::new(BufWriter::new(file), &path, 300, 200).unwrap();
             enc.write(&events[..400]).unwrap();
             enc.write(&events[400..]).unwrap();
             enc.finish().unwrap();
         }
-        assert!(!path.with_extension("npz.records").exists());
+        assert!(!super::super::journal::path_for(&path).exists());
         let mut dec = Decoder::open(&path).unwrap();
         let mut got = Vec::new();
         while dec.read_events(&mut got, 333).unwrap() > 0 {}

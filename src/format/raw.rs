@@ -77,6 +77,8 @@ pub struct Header {
     pub time_offset: i64,
     /// The header lines without their `% ` prefix.
     pub lines: Vec<String>,
+    /// The header's length in bytes: the words start here.
+    pub bytes: u64,
 }
 
 /// The longest header this reader accepts, in bytes (real headers are a few hundred).
@@ -114,6 +116,7 @@ pub fn read_header(r: &mut impl BufRead) -> Result<Header> {
     if header.size.is_none() {
         header.size = plugin_size;
     }
+    header.bytes = total;
     Ok(header)
 }
 

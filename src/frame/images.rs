@@ -20,7 +20,7 @@ use serde::{Deserialize, Serialize};
 use super::color::{gray_to_luma, rgb_to_luma};
 use super::{check_order, Frame, FrameSource};
 use crate::error::{Error, Result};
-use crate::format::ijrr::parse_seconds_us;
+use crate::format::ijrr::{is_number, seconds_in_range};
 
 /// How image values relate to the light.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, Serialize, ValueEnum)]
@@ -56,7 +56,8 @@ pub enum FrameList {
 }
 
 /// Whether the text file `path` is a frame list, and which kind (from its first line that is
-/// not blank or a comment); `None` for anything else.
+/// not blank or a comment); `None` for anything else. A first time out of range still makes a
+/// list (whose reading then names the line), not a text file of another kind.
 pub fn frame_list_kind(path: &Path) -> Option<FrameList> {
     let text = std::fs::read(path).ok()?;
     let head = &text[..text.len().min(1 << 16)];
@@ -66,13 +67,16 @@ pub fn frame_list_kind(path: &Path) -> Option<FrameList> {
         .map(str::trim)
         .find(|l| !l.is_empty() && !l.starts_with('#'))?;
     let mut fields = line.split_whitespace();
-    let time = fields.next().and_then(parse_seconds_us);
+    let time = fields.next().filter(|f| is_number(f));
     match (time, fields.next(), fields.next()) {
         (Some(_), Some(image), None) if is_image(Path::new(image)) => Some(FrameList::Images),
         (Some(_), None, None) => Some(FrameList::Times),
         _ => None,
     }
 }
+
+/// What an out-of-range time in a frame list is called in its error.
+const FRAME_TIME: &str = "frame time";
 
 fn is_image(p: &Path) -> bool {
     p.extension()
@@ -90,13 +94,16 @@ fn list_images(folder: &Path) -> Result<Vec<PathBuf>> {
     Ok(files)
 }
 
-fn read_lines(path: &Path) -> Result<Vec<String>> {
+/// The lines of `path` that are not blank or comments, each with its line number in the file
+/// (from 1), for error messages.
+fn read_lines(path: &Path) -> Result<Vec<(usize, String)>> {
     Ok(std::fs::read_to_string(path)
         .map_err(|e| Error::io(path, e))?
         .lines()
         .map(str::trim)
-        .filter(|l| !l.is_empty() && !l.starts_with('#'))
-        .map(String::from)
+        .enumerate()
+        .filter(|(_, l)| !l.is_empty() && !l.starts_with('#'))
+        .map(|(i, l)| (i + 1, l.to_string()))
         .collect())
 }
 
@@ -141,14 +148,19 @@ impl ImageFolder {
         let frames: Vec<(i64, PathBuf)> = if ijrr.is_file() {
             read_lines(&ijrr)?
                 .iter()
-                .enumerate()
-                .map(|(i, line)| {
+                .map(|(n, line)| {
                     let mut f = line.split_whitespace();
-                    match (f.next().and_then(parse_seconds_us), f.next()) {
-                        (Some(t), Some(p)) => Ok((t, folder.join(p))),
+                    match (
+                        f.next().and_then(|t| seconds_in_range(FRAME_TIME, t)),
+                        f.next(),
+                    ) {
+                        (Some(Ok(t)), Some(p)) => Ok((t, folder.join(p))),
+                        (Some(Err(e)), Some(_)) => {
+                            Err(Error::format(&ijrr, format!("line {n}: {e}")))
+                        }
                         _ => Err(Error::format(
                             &ijrr,
-                            format!("line {}: expected 't_seconds path', got '{line}'", i + 1),
+                            format!("line {n}: expected 't_seconds path', got '{line}'"),
                         )),
                     }
                 })
@@ -165,11 +177,12 @@ impl ImageFolder {
                 }
                 lines
                     .iter()
-                    .enumerate()
-                    .map(|(i, l)| {
-                        parse_seconds_us(l).ok_or_else(|| {
-                            Error::format(&times, format!("line {}: bad time '{l}'", i + 1))
-                        })
+                    .map(|(n, l)| {
+                        seconds_in_range(FRAME_TIME, l)
+                            .ok_or_else(|| {
+                                Error::format(&times, format!("line {n}: bad time '{l}'"))
+                            })?
+                            .map_err(|e| Error::format(&times, format!("line {n}: {e}")))
                     })
                     .collect::<Result<_>>()?
             } else {
@@ -304,5 +317,95 @@ impl FrameSource for ImageFolder {
         } else {
             super::SourceEncoding::Srgb
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A frame list whose time is out of range (past an `i64` of microseconds, infinite, or
+    /// just past 2^61 us) is read as a frame list, and its error names the file, the line and
+    /// the range times take, not "a text file, not a video".
+    #[test]
+    fn a_time_out_of_range_in_a_frame_list_names_its_line_and_the_range() {
+        let dir = std::env::temp_dir().join(format!("v2ce-images-range-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        image::GrayImage::new(4, 3).save(dir.join("a.png")).unwrap();
+        image::GrayImage::new(4, 3).save(dir.join("b.png")).unwrap();
+        let bound = crate::time::MAX_ABS_US.to_string();
+        let open = |name: &str, text: &str| {
+            let list = dir.join(name);
+            std::fs::write(&list, text).unwrap();
+            let options = crate::frame::SourceOptions {
+                fps: None,
+                color: ColorSpace::Auto,
+            };
+            match crate::frame::open(&list, &options) {
+                Ok(_) => panic!("{text:?} opened"),
+                Err(e) => e.to_string(),
+            }
+        };
+        for (first, second) in [
+            ("-9223372036854", "0"),
+            ("1e300", "2e300"),
+            ("0", "-inf"),
+            ("0", "2305843009213.693953"),
+            ("-2305843009213.693953", "0"),
+        ] {
+            // The bad line's number in the file (blank and comment lines count).
+            let bad = if crate::format::ijrr::parse_seconds_us(first)
+                .is_some_and(crate::time::in_range)
+            {
+                1
+            } else {
+                0
+            };
+            for (name, text, bad_line) in [
+                (
+                    "images.txt",
+                    format!("# t path\n{first} a.png\n\n{second} b.png\n"),
+                    [2, 4][bad],
+                ),
+                ("times.txt", format!("{first}\n{second}\n"), [1, 2][bad]),
+            ] {
+                let e = open(name, &text);
+                assert!(
+                    e.contains(name)
+                        && e.contains(&format!("line {bad_line}: "))
+                        && e.contains("frame time")
+                        && e.contains("out of range")
+                        && e.contains(&bound)
+                        && !e.contains("not a video"),
+                    "{text:?}: {e}"
+                );
+            }
+        }
+        // Not a number at all: the line's expected layout.
+        let e = open("images.txt", "nan a.png\n1 b.png\n");
+        assert!(
+            e.contains("line 1: expected 't_seconds path'") && !e.contains("not a video"),
+            "{e}"
+        );
+        let e = open("times.txt", "0\nnan\n");
+        assert!(e.contains("line 2: bad time 'nan'"), "{e}");
+        // The range's ends themselves are times.
+        std::fs::write(
+            dir.join("images.txt"),
+            "-2305843009213.693952 a.png\n2305843009213.693952 b.png\n",
+        )
+        .unwrap();
+        let options = crate::frame::SourceOptions {
+            fps: None,
+            color: ColorSpace::Auto,
+        };
+        let mut source = crate::frame::open(&dir.join("images.txt"), &options).unwrap();
+        let times: Vec<i64> = crate::frame::read_frames(source.as_mut(), 3)
+            .unwrap()
+            .iter()
+            .map(|f| f.t)
+            .collect();
+        assert_eq!(times, [-crate::time::MAX_ABS_US, crate::time::MAX_ABS_US]);
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -188,6 +188,19 @@ impl FileSink {
         }
     }
 
+    /// `e`, saying how to read what a file whole only at its end (`.npz`, `.h5`) took.
+    fn explain(&self, e: Error) -> Error {
+        let journal = crate::format::journal::path_for(&self.path);
+        if self.encoder.readable_after_flush() || !journal.exists() {
+            return e;
+        }
+        Error::Run(format!(
+            "{e}; `v2ce repair {}` writes the file from its journal {}",
+            self.path.display(),
+            journal.display()
+        ))
+    }
+
     fn flush_to_disk(&mut self) -> Result<()> {
         self.flush_into_file()?;
         if let Some(file) = &self.sync {
@@ -228,7 +241,7 @@ impl Sink for FileSink {
             self.failed = true;
             self.cut_back();
         }
-        sent
+        sent.map_err(|e| self.explain(e))
     }
 
     fn finish(&mut self) -> Result<()> {
@@ -241,7 +254,7 @@ impl Sink for FileSink {
             self.failed = true;
             self.cut_back();
         }
-        finished
+        finished.map_err(|e| self.explain(e))
     }
 
     fn stats(&self) -> SinkStats {

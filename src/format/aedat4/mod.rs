@@ -461,6 +461,12 @@ impl<R: Read> Reader<R> {
         &self.header
     }
 
+    /// The bytes from the file's start to the end of the last whole packet read (after the
+    /// header when none was).
+    pub fn whole_bytes(&self) -> u64 {
+        self.position
+    }
+
     /// The event stream that [`Item::Events`] comes from.
     pub fn event_stream(&self) -> Option<&StreamInfo> {
         self.event_stream.as_ref()

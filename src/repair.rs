@@ -1,0 +1,365 @@
+//! `v2ce repair`: makes an event file that a killed writer left (SIGKILL, a power cut, a full
+//! disk) readable by the field's readers, keeping every whole event it holds.
+//!
+//! | format | a killed writer leaves | repair |
+//! |---|---|---|
+//! | `.npz`, `.h5` | a file that does not open, and its journal ([`format::journal`]) | the file written from the journal's whole records, the journal removed |
+//! | `.aedat4` | whole packets, perhaps a last one cut short, no data table | cut after the last whole packet |
+//! | `.raw` (EVT 2.0, 3.0) | whole words, perhaps a last one cut short | cut after the last whole word |
+//! | `.csv` | whole lines, perhaps a last one cut short | cut after the last whole line |
+//!
+//! The repaired file is read through once with this program's decoder before it is called
+//! repaired. A file that is already whole is left as it is.
+
+use std::io::{Read, Seek, SeekFrom};
+use std::path::{Path, PathBuf};
+
+use crate::error::{Error, Result};
+use crate::format::{self, journal, raw, EventDecoder, Format};
+
+/// What [`repair`] did.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Report {
+    /// The repaired file.
+    pub output: PathBuf,
+    /// Whole events it holds.
+    pub events: u64,
+    /// What was done.
+    pub action: Action,
+}
+
+/// How a file was repaired.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Action {
+    /// Already whole: left as it was (copied where an output was given).
+    Whole,
+    /// Cut after its last whole unit (packet, word, line), dropping `dropped` bytes.
+    Cut {
+        /// Bytes kept.
+        kept: u64,
+        /// Bytes dropped after them.
+        dropped: u64,
+    },
+    /// Written from its journal, which is removed.
+    FromJournal(PathBuf),
+}
+
+impl std::fmt::Display for Report {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let (out, n) = (self.output.display(), self.events);
+        match &self.action {
+            Action::Whole => write!(f, "{out} is whole ({n} events): nothing to repair"),
+            Action::Cut { kept, dropped } => write!(
+                f,
+                "{out}: cut after its last whole unit, {kept} bytes kept, {dropped} dropped; \
+                 {n} events"
+            ),
+            Action::FromJournal(j) => write!(
+                f,
+                "{out}: written from its journal {} ({n} events); the journal is removed",
+                j.display()
+            ),
+        }
+    }
+}
+
+/// Repairs `path` (see the module docs) in place, or into `output` (leaving `path` as it is).
+pub fn repair(path: &Path, output: Option<&Path>) -> Result<Report> {
+    let target = output.unwrap_or(path);
+    if output.is_some() && crate::file_id::same_file(path, target) {
+        return Err(Error::invalid(
+            "output file",
+            format!(
+                "{} is the file to repair (leave out --out to repair in place)",
+                target.display()
+            ),
+        ));
+    }
+    let format = Format::for_output(path, None, format::Compression::default()).map_err(|_| {
+        Error::format(
+            path,
+            "cannot repair this file type (expected .aedat4, .raw, .csv, .npz, .h5 or .hdf5)",
+        )
+    })?;
+    let journal_path = journal::path_for(path);
+    if matches!(format, Format::Npz | Format::Hdf5) {
+        if journal_path.exists() {
+            return from_journal(&journal_path, target, format);
+        }
+        // No journal: whole, or not ours to mend.
+        let events = count(path).map_err(|e| {
+            Error::format(
+                path,
+                format!(
+                    "{e}; and it has no journal ({}) to write it from: written by another \
+                     program or an older v2ce, or the journal was removed",
+                    journal_path.display()
+                ),
+            )
+        })?;
+        return whole(path, output, events);
+    }
+    if !path.is_file() {
+        return Err(Error::format(path, "not a file"));
+    }
+    let len = std::fs::metadata(path)
+        .map_err(|e| Error::io(path, e))?
+        .len();
+    let kept = whole_prefix(path, format)?;
+    if kept >= len {
+        let events = count(path)?;
+        return whole(path, output, events);
+    }
+    match output {
+        None => std::fs::OpenOptions::new()
+            .write(true)
+            .open(path)
+            .and_then(|f| f.set_len(kept))
+            .map_err(|e| Error::io(path, e))?,
+        Some(out) => {
+            let partial = format::PartialOutput::new(out);
+            copy_prefix(path, partial.writing(), kept)
+                .and_then(|()| partial.commit())
+                .map_err(|e| partial.explain(e))?;
+        }
+    }
+    let events = count(target)?;
+    Ok(Report {
+        output: target.to_path_buf(),
+        events,
+        action: Action::Cut {
+            kept,
+            dropped: len - kept,
+        },
+    })
+}
+
+/// A whole file: nothing done, or copied to `output`.
+fn whole(path: &Path, output: Option<&Path>, events: u64) -> Result<Report> {
+    if let Some(out) = output {
+        let partial = format::PartialOutput::new(out);
+        std::fs::copy(path, partial.writing())
+            .map_err(|e| Error::io(out, e))
+            .and_then(|_| partial.commit())
+            .map_err(|e| partial.explain(e))?;
+    }
+    Ok(Report {
+        output: output.unwrap_or(path).to_path_buf(),
+        events,
+        action: Action::Whole,
+    })
+}
+
+/// Writes `target` in `format` from the journal at `journal_path`, then removes the journal.
+fn from_journal(journal_path: &Path, target: &Path, format: Format) -> Result<Report> {
+    let mut decoder = journal::Decoder::open(journal_path)?;
+    let size = decoder.size().unwrap_or((0, 0));
+    let out = format::PartialOutput::new(target);
+    let report =
+        crate::transcode::write_all(journal_path, &mut decoder, out.writing(), format, size)
+            .and_then(|r| out.commit().map(|()| r))
+            .map_err(|e| out.explain(e))?;
+    // Read back before the journal goes.
+    let events = count(target)?;
+    if events != report.events {
+        return Err(Error::format(
+            target,
+            format!(
+                "holds {events} events after the repair, {} written",
+                report.events
+            ),
+        ));
+    }
+    std::fs::remove_file(journal_path).map_err(|e| Error::io(journal_path, e))?;
+    Ok(Report {
+        output: target.to_path_buf(),
+        events,
+        action: Action::FromJournal(journal_path.to_path_buf()),
+    })
+}
+
+/// The events of `path`, read through with this program's decoder.
+fn count(path: &Path) -> Result<u64> {
+    let mut decoder = format::open_verbatim(path)?;
+    let mut buf = Vec::new();
+    let mut n = 0u64;
+    loop {
+        buf.clear();
+        let k = decoder.read_events(&mut buf, crate::transcode::CHUNK)?;
+        if k == 0 {
+            return Ok(n);
+        }
+        n += k as u64;
+    }
+}
+
+/// The length of `path`'s leading whole units (packets, words, lines) in `format`.
+fn whole_prefix(path: &Path, format: Format) -> Result<u64> {
+    let open = || std::fs::File::open(path).map_err(|e| Error::io(path, e));
+    let reader = || Ok::<_, Error>(std::io::BufReader::with_capacity(1 << 16, open()?));
+    let len = std::fs::metadata(path)
+        .map_err(|e| Error::io(path, e))?
+        .len();
+    let wrap = |e: Error| Error::format(path, e.to_string());
+    match format {
+        Format::Aedat4(_) => {
+            let mut r = format::aedat4::Reader::new_file(reader()?).map_err(wrap)?;
+            while r.next_item().map_err(wrap)?.is_some() {}
+            // A finished file ends with its data table, after the packets.
+            Ok(if r.header().data_table_position >= 0 {
+                len
+            } else {
+                r.whole_bytes()
+            })
+        }
+        Format::Evt2 | Format::Evt3 => {
+            let header = raw::read_header(&mut reader()?).map_err(wrap)?;
+            let word = if format == Format::Evt3 { 2 } else { 4 };
+            let body = len.saturating_sub(header.bytes);
+            Ok(header.bytes + body / word * word)
+        }
+        Format::Csv => {
+            // After the last newline.
+            let mut file = open()?;
+            let mut end = len;
+            let mut buf = vec![0u8; 1 << 16];
+            while end > 0 {
+                let start = end.saturating_sub(buf.len() as u64);
+                let chunk = &mut buf[..(end - start) as usize];
+                file.seek(SeekFrom::Start(start))
+                    .and_then(|_| file.read_exact(chunk))
+                    .map_err(|e| Error::io(path, e))?;
+                if let Some(i) = chunk.iter().rposition(|&b| b == b'\n') {
+                    return Ok(start + i as u64 + 1);
+                }
+                end = start;
+            }
+            Ok(0)
+        }
+        Format::Npz | Format::Hdf5 => Ok(len),
+    }
+}
+
+/// Copies the first `n` bytes of `from` to `to`.
+fn copy_prefix(from: &Path, to: &Path, n: u64) -> Result<()> {
+    let mut src = std::fs::File::open(from).map_err(|e| Error::io(from, e))?;
+    let mut dst = std::fs::File::create(to).map_err(|e| Error::io(to, e))?;
+    let copied = std::io::copy(&mut (&mut src).take(n), &mut dst).map_err(|e| Error::io(to, e))?;
+    if copied != n {
+        return Err(Error::format(
+            from,
+            format!("shrank while read: {copied} of {n} bytes"),
+        ));
+    }
+    dst.sync_all().map_err(|e| Error::io(to, e))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::event::Event;
+
+    fn events(n: i64) -> Vec<Event> {
+        (0..n)
+            .map(|i| {
+                Event::new(
+                    1000 + i * 13,
+                    (i % 346) as u16,
+                    (i % 260) as u16,
+                    i % 2 == 0,
+                )
+            })
+            .collect()
+    }
+
+    fn read(path: &Path) -> Vec<Event> {
+        let mut d = format::open(path).unwrap();
+        let mut got = Vec::new();
+        while d.read_events(&mut got, 1000).unwrap() > 0 {}
+        got
+    }
+
+    /// An encoder dropped before its end (as a killed run leaves it): the streaming formats
+    /// cut short inside their last unit read up to it after the repair, and `.npz` / `.h5`
+    /// are written from their journals; a whole file is left alone.
+    #[test]
+    fn killed_files_read_after_repair() {
+        let dir = std::env::temp_dir().join(format!("v2ce-repair-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let all = events(20_000);
+        for name in ["a.aedat4", "b.raw", "c.raw", "d.csv", "e.npz", "f.h5"] {
+            let path = dir.join(name);
+            let evt = (name == "c.raw").then_some(3);
+            let fmt = Format::for_output(&path, evt, Default::default()).unwrap();
+            {
+                let mut enc = format::create(&path, fmt, 346, 260).unwrap();
+                enc.write(&all[..12_345]).unwrap();
+                enc.flush().unwrap();
+                // Dropped without `finish`, like a killed run.
+                std::mem::forget(enc);
+            }
+            let streaming = !matches!(fmt, Format::Npz | Format::Hdf5);
+            if streaming {
+                // Cut inside the last unit.
+                let len = std::fs::metadata(&path).unwrap().len();
+                let f = std::fs::OpenOptions::new().write(true).open(&path).unwrap();
+                f.set_len(len - 1).unwrap();
+            } else {
+                assert!(
+                    format::open(&path).is_err(),
+                    "{name} opens before the repair"
+                );
+            }
+            let report = repair(&path, None).unwrap();
+            let got = read(&path);
+            assert_eq!(report.events, got.len() as u64, "{name}");
+            assert_eq!(got[..], all[..got.len()], "{name}");
+            if streaming {
+                assert!(
+                    matches!(report.action, Action::Cut { dropped, .. } if dropped > 0),
+                    "{name}: {report}"
+                );
+                // At most one packet (AEDAT 4.0 holds a batch in one), word or line lost.
+                assert!(
+                    !got.is_empty() && got.len() <= 12_345,
+                    "{name}: {}",
+                    got.len()
+                );
+                if !name.ends_with(".aedat4") {
+                    assert!(got.len() >= 12_343, "{name}: {}", got.len());
+                }
+            } else {
+                assert_eq!(got.len(), 12_345, "{name}");
+                assert!(
+                    matches!(report.action, Action::FromJournal(_)),
+                    "{name}: {report}"
+                );
+                assert!(!journal::path_for(&path).exists());
+            }
+            // Again: whole now.
+            let again = repair(&path, None).unwrap();
+            assert_eq!(again.action, Action::Whole, "{name}");
+            assert_eq!(again.events, got.len() as u64);
+        }
+        // Into another file, leaving the original.
+        let path = dir.join("g.csv");
+        let mut enc = format::create(&path, Format::Csv, 346, 260).unwrap();
+        enc.write(&all[..100]).unwrap();
+        enc.finish().unwrap();
+        drop(enc);
+        let bytes = std::fs::read(&path).unwrap();
+        std::fs::write(&path, &bytes[..bytes.len() - 3]).unwrap();
+        let out = dir.join("g2.csv");
+        let report = repair(&path, Some(&out)).unwrap();
+        assert_eq!(report.events, 99);
+        assert_eq!(std::fs::read(&path).unwrap().len(), bytes.len() - 3);
+        assert!(repair(&path, Some(&path)).is_err());
+        // Not ours to mend: an .npz without its journal; a type it cannot write.
+        std::fs::write(dir.join("x.npz"), b"PK nonsense").unwrap();
+        let e = repair(&dir.join("x.npz"), None).unwrap_err().to_string();
+        assert!(e.contains("no journal"), "{e}");
+        std::fs::write(dir.join("x.txt"), b"0.1 1 2 1\n").unwrap();
+        assert!(repair(&dir.join("x.txt"), None).is_err());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}
