@@ -381,6 +381,39 @@ pub fn simulate_physics(
     Ok(Recording::new(events, Some(size)))
 }
 
+/// The noise floors ([`crate::metrics::realism::FloorMeter`]) of the `real` and `sim` events
+/// of a `size` sensor over the consecutive frames of `frames` (read one at a time).
+pub fn noise_floors(
+    frames: &Path,
+    size: (u16, u16),
+    streams: [&[crate::event::Event]; 2],
+) -> Result<[crate::metrics::realism::NoiseFloor; 2]> {
+    let mut source = crate::frame::open(frames, &Default::default())?;
+    if source.size() != size {
+        return Err(Error::invalid(
+            "frames",
+            format!(
+                "{}: frames of {} x {} for a {} x {} recording",
+                frames.display(),
+                source.size().0,
+                source.size().1,
+                size.0,
+                size.1
+            ),
+        ));
+    }
+    let mut meter =
+        crate::metrics::realism::FloorMeter::new(usize::from(size.0), crate::frame::FULL_SCALE);
+    let mut previous = source.next_frame()?;
+    while let Some(frame) = source.next_frame()? {
+        if let Some(p) = &previous {
+            meter.add(&p.luma, &frame.luma, (p.t, frame.t), streams);
+        }
+        previous = Some(frame);
+    }
+    Ok(meter.floors)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -340,3 +340,75 @@ fn convert_frames_to_events_in_every_format() {
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// `v2ce eval realism` without the shared data: the bundled video converted twice (the
+/// default preset, and the noiseless `ideal` one) and measured at a fixed rate. A stream
+/// against itself is at distance 0 wherever defined; the noiseless one differs; the table
+/// names every statistic and says "undefined" for the noise floor, which needs frames.
+#[test]
+fn eval_realism_compares_two_streams() {
+    let dir = temp_dir("realism");
+    let convert = |preset: &str, out: &str| {
+        let o = v2ce()
+            .args([
+                "convert",
+                "fixture",
+                "--max-frames",
+                "40",
+                "--size",
+                "160x120",
+                "--preset",
+                preset,
+                "-o",
+            ])
+            .arg(dir.join(out))
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    };
+    convert("davis346", "a.csv");
+    convert("ideal", "b.csv");
+    let run = |sim: &str, json: bool| {
+        let mut c = v2ce();
+        c.args(["eval", "realism", "--fps", "30", "--real"])
+            .arg(dir.join("a.csv"))
+            .arg("--sim")
+            .arg(dir.join(sim));
+        if json {
+            c.arg("--json");
+        }
+        let o = c.output().unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        String::from_utf8(o.stdout).unwrap()
+    };
+    let same: serde_json::Value = serde_json::from_str(&run("a.csv", true)).unwrap();
+    let stats = same["statistics"].as_array().unwrap();
+    assert_eq!(stats.len(), 11);
+    for s in stats {
+        assert!(s["distance"].is_null() || s["distance"] == 0.0, "{s}");
+    }
+    let other: serde_json::Value = serde_json::from_str(&run("b.csv", true)).unwrap();
+    let moved = other["statistics"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|s| s["distance"].as_f64().is_some_and(|d| d > 0.0))
+        .count();
+    assert!(moved >= 3, "{other}");
+    let table = run("b.csv", false);
+    for s in stats {
+        assert!(table.contains(s["name"].as_str().unwrap()), "{table}");
+    }
+    assert!(table.contains("undefined"), "{table}");
+    // Without frames or a rate there is no window.
+    let o = v2ce()
+        .args(["eval", "realism", "--real"])
+        .arg(dir.join("a.csv"))
+        .arg("--sim")
+        .arg(dir.join("b.csv"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("--fps"), "{err}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -410,6 +410,7 @@ fn help_texts_are_unchanged() {
         "eval",
         "eval stage1",
         "eval stage2",
+        "eval realism",
         "listen",
         "render",
         "model",

@@ -394,3 +394,81 @@ fn the_default_physics_tier_sees_motion_on_davis346() {
     assert!(linear < 0.64, "{linear}");
     std::fs::remove_dir_all(&out).unwrap();
 }
+
+/// `v2ce eval realism` on the davis346 clip and its APS frames: every statistic of the issue,
+/// each a finite number or null; the recording against itself is at distance 0 on every
+/// statistic it defines; the noise floor (which needs frames) is defined there and undefined
+/// on the dvxplorer recording measured at a fixed rate.
+#[test]
+fn realism_statistics_on_the_shared_recordings() {
+    let d = data_or_skip!("realism_statistics_on_the_shared_recordings");
+    let run = |args: &[&std::ffi::OsStr]| -> serde_json::Value {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_v2ce"))
+            .args(["eval", "realism", "--json"])
+            .args(args)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "{args:?}: {err}");
+        serde_json::from_slice(&out.stdout).unwrap()
+    };
+    let davis = d.join("davis346/davis346.aedat4");
+    let stat = |json: &serde_json::Value, name: &str| -> serde_json::Value {
+        json["statistics"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|s| s["name"] == name)
+            .unwrap_or_else(|| panic!("{name} missing in {json}"))
+            .clone()
+    };
+    let names = [
+        "rate_per_pixel",
+        "firing_pixels",
+        "inter_event_interval",
+        "refractory_floor",
+        "timestamp_batching",
+        "neighbour_batching",
+        "on_share",
+        "on_off_alternation",
+        "noise_floor_dark",
+        "noise_floor_bright",
+        "rate_spectrum_peak",
+    ];
+    let simulated = run(&["--real".as_ref(), davis.as_os_str()]);
+    assert!(
+        simulated["sim_events"].as_u64().unwrap() > 10_000,
+        "{simulated}"
+    );
+    for name in names {
+        let s = stat(&simulated, name);
+        for key in ["real", "sim", "distance"] {
+            assert!(s[key].is_number(), "{name}.{key} in {simulated}");
+        }
+    }
+    let itself = run(&[
+        "--real".as_ref(),
+        davis.as_os_str(),
+        "--sim".as_ref(),
+        davis.as_os_str(),
+    ]);
+    for name in names {
+        let s = stat(&itself, name);
+        assert_eq!(s["real"], s["sim"], "{name}");
+        assert_eq!(s["distance"], 0.0, "{name}");
+    }
+    let dvx = d.join("dvxplorer/data_sample.aedat4");
+    let fixed = run(&[
+        "--real".as_ref(),
+        dvx.as_os_str(),
+        "--sim".as_ref(),
+        dvx.as_os_str(),
+        "--fps".as_ref(),
+        "30".as_ref(),
+    ]);
+    assert!(
+        stat(&fixed, "noise_floor_dark")["real"].is_null(),
+        "{fixed}"
+    );
+    assert_eq!(stat(&fixed, "inter_event_interval")["distance"], 0.0);
+}

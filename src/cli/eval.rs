@@ -22,6 +22,78 @@ pub enum Eval {
     /// intervals and score them (TPF1, TF1, RF1, accuracies, PMSE-2/4), plus the Stage 2
     /// timestamp metrics between the two.
     Stage1(Stage1Args),
+    /// Realism: distribution-level statistics of a simulated and a real event stream over the
+    /// same window and pixels (rates, inter-event intervals, refractory floor, timestamp
+    /// batching, polarity, the noise floor on static pixels, the event-rate spectrum), each
+    /// with a distance: scores that silence does not win.
+    Realism(RealismArgs),
+}
+
+/// The flags of `v2ce eval realism`.
+#[derive(Args)]
+pub struct RealismArgs {
+    /// The real events (and, for an .aedat4 with APS frames, the frames: the window and the
+    /// noise floor's static pixels).
+    #[arg(long)]
+    pub(crate) real: PathBuf,
+    /// The simulated events; without it, the physics tier simulates them here from the
+    /// recording's APS frames (or the --frames images) with --preset / --preset-file.
+    #[arg(long)]
+    pub(crate) sim: Option<PathBuf>,
+    /// Frames (an .aedat4 with APS frames, or an image list) when --real has none.
+    #[arg(long, conflicts_with = "fps")]
+    pub(crate) frames: Option<PathBuf>,
+    /// No frames: the window is whole intervals at this rate from the first real event (the
+    /// noise floor, which needs frames, is then undefined).
+    #[arg(long)]
+    pub(crate) fps: Option<f64>,
+    /// How the events are simulated without --sim.
+    #[command(flatten)]
+    pub(crate) simulate: SimulateArgs,
+    /// Print the report as one JSON object.
+    #[arg(long)]
+    pub(crate) json: bool,
+}
+
+/// How `v2ce eval` simulates the events it scores when it is given none.
+#[derive(Args)]
+pub struct SimulateArgs {
+    /// Without --sim: the sensor preset to simulate with (davis346, dvxplorer, ideal).
+    #[arg(long, default_value = "davis346", conflicts_with = "sim")]
+    pub(crate) preset: String,
+    /// Without --sim: a preset file (as `v2ce calibrate` writes) instead of --preset.
+    #[arg(long, conflicts_with = "sim")]
+    pub(crate) preset_file: Option<PathBuf>,
+    /// Without --sim: the seed of mismatch and noise.
+    #[arg(long, default_value_t = 0, conflicts_with = "sim")]
+    pub(crate) seed: u64,
+}
+
+impl SimulateArgs {
+    /// The events of `sim`, or those the physics tier makes of the frames of `real` (or
+    /// `frames`), checked to lie on the `size` sensor.
+    fn events(
+        &self,
+        sim: Option<&std::path::Path>,
+        real: &std::path::Path,
+        frames: Option<&std::path::Path>,
+        size: (u16, u16),
+    ) -> Result<format::Recording> {
+        let events = match sim {
+            Some(path) => format::read_events(path)?,
+            None => {
+                let mut stage1 = crate::stage1::Stage1Config::default();
+                match &self.preset_file {
+                    Some(f) => stage1.load_preset_file(f)?,
+                    None => stage1.preset = crate::stage1::Preset::from_name(&self.preset)?,
+                }
+                crate::eval::simulate_physics(real, frames, &stage1, self.seed, size, note)?
+            }
+        };
+        let name = sim.map_or_else(|| PathBuf::from("the simulated events"), PathBuf::from);
+        crate::eval::check_sensor(events.events.events(), size, &name)?;
+        Ok(events)
+    }
 }
 
 /// The flags of `v2ce eval stage1`.
@@ -40,15 +112,9 @@ pub struct Stage1Args {
     /// Fixed frame rate for the intervals instead.
     #[arg(long)]
     pub(crate) fps: Option<f64>,
-    /// Without --sim: the sensor preset to simulate with (davis346, dvxplorer, ideal).
-    #[arg(long, default_value = "davis346", conflicts_with = "sim")]
-    pub(crate) preset: String,
-    /// Without --sim: a preset file (as `v2ce calibrate` writes) instead of --preset.
-    #[arg(long, conflicts_with = "sim")]
-    pub(crate) preset_file: Option<PathBuf>,
-    /// Without --sim: the seed of mismatch and noise.
-    #[arg(long, default_value_t = 0, conflicts_with = "sim")]
-    pub(crate) seed: u64,
+    /// How the events are simulated without --sim.
+    #[command(flatten)]
+    pub(crate) simulate: SimulateArgs,
     /// Score only these frame intervals: first (half, by time), second, all (as `v2ce dataset
     /// recording --split`, so a model is scored on the half it did not train on).
     #[arg(long, value_enum, default_value_t = crate::dataset::Split::All)]
@@ -102,23 +168,12 @@ pub fn eval_stage1(args: Stage1Args) -> Result<()> {
         ));
     }
     let size = (real.width, real.height);
-    let sim = match &args.sim {
-        Some(path) => format::read_events(path)?,
-        None => {
-            let mut stage1 = crate::stage1::Stage1Config::default();
-            match &args.preset_file {
-                Some(f) => stage1.load_preset_file(f)?,
-                None => stage1.preset = crate::stage1::Preset::from_name(&args.preset)?,
-            }
-            let frames = args.frames.as_deref();
-            crate::eval::simulate_physics(&args.real, frames, &stage1, args.seed, size, note)?
-        }
-    };
-    let sim_name = args
-        .sim
-        .clone()
-        .unwrap_or_else(|| PathBuf::from("the simulated events"));
-    crate::eval::check_sensor(sim.events.events(), size, &sim_name)?;
+    let sim = args.simulate.events(
+        args.sim.as_deref(),
+        &args.real,
+        args.frames.as_deref(),
+        size,
+    )?;
     let report = crate::eval::stage1(real.events.events(), sim.events.events(), &intervals, size)?;
     let (m, t) = (report.voxels, report.timing);
     let mut out = std::io::stdout().lock();
@@ -150,6 +205,41 @@ pub fn eval_stage1(args: Stage1Args) -> Result<()> {
         )
     };
     writeln!(out, "{text}").map_err(|e| Error::io("stdout", e))
+}
+
+/// Runs `v2ce eval realism`.
+pub fn eval_realism(args: RealismArgs) -> Result<()> {
+    let (real, intervals) =
+        crate::eval::load_events_and_intervals(&args.real, args.frames.as_deref(), args.fps, note)?;
+    let (Some(first), Some(last)) = (intervals.first(), intervals.last()) else {
+        return Err(Error::invalid(
+            "frames",
+            "no frame intervals: nothing to measure",
+        ));
+    };
+    let window = (first.start(), last.end());
+    let size = (real.width, real.height);
+    let sim = args.simulate.events(
+        args.sim.as_deref(),
+        &args.real,
+        args.frames.as_deref(),
+        size,
+    )?;
+    let (real, sim) = (real.events.events(), sim.events.events());
+    let floors = match args.fps {
+        Some(_) => None,
+        None => {
+            let frames = args.frames.as_deref().unwrap_or(&args.real);
+            Some(crate::eval::noise_floors(frames, size, [real, sim])?)
+        }
+    };
+    let report = crate::metrics::realism::compare(real, sim, size, window, floors)?;
+    let text = if args.json {
+        serde_json::to_string(&report).map_err(|e| Error::invalid("report", e.to_string()))?
+    } else {
+        report.table()
+    };
+    writeln!(std::io::stdout().lock(), "{text}").map_err(|e| Error::io("stdout", e))
 }
 
 /// Prints a note of the library's on stderr.

@@ -94,6 +94,7 @@ impl Command {
         match self {
             Command::Eval(Eval::Stage2(args)) => eval::eval_stage2(args),
             Command::Eval(Eval::Stage1(args)) => eval::eval_stage1(args),
+            Command::Eval(Eval::Realism(args)) => eval::eval_realism(args),
             Command::Convert(args) => convert::convert(args),
             Command::Transcode(args) => events::transcode(args),
             Command::Info(args) => events::info(args),

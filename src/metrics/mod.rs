@@ -1,5 +1,6 @@
 //! Metrics that score simulated events against real recordings (V2CE_SPEC.md section 6).
 
+pub mod realism;
 pub mod stage1;
 pub mod stage2;
 
