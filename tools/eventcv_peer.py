@@ -31,6 +31,18 @@ def simulate_timed(frames, fps, noise, repeat):
     return events, best
 
 
+def read_aps(path):
+    """The APS frames of an AEDAT 4.0 recording (uint8 [N, H, W]) and their mid-exposure times."""
+    frames, times = [], []
+    for packet in aedat.Decoder(path):
+        if "frame" in packet:
+            f = packet["frame"]
+            frames.append(np.asarray(f["pixels"], dtype=np.uint8).reshape(f["height"], f["width"]))
+            b, e = f["exposure_begin_t"], f["exposure_end_t"]
+            times.append(b + (e - b) // 2 if e >= b > 0 else f["t"])
+    return np.stack(frames), times
+
+
 def time_npy(argv, noise, repeat):
     frames = np.load(argv[2])
     events, best = simulate_timed(frames, float(argv[3]), noise, repeat)
@@ -43,14 +55,7 @@ def main(argv):
     if argv[1] == "--npy":
         return time_npy(argv, noise, repeat)
     path, out = argv[1], argv[2]
-    frames, times = [], []
-    for packet in aedat.Decoder(path):
-        if "frame" in packet:
-            f = packet["frame"]
-            frames.append(np.asarray(f["pixels"], dtype=np.uint8).reshape(f["height"], f["width"]))
-            b, e = f["exposure_begin_t"], f["exposure_end_t"]
-            times.append(b + (e - b) // 2 if e >= b > 0 else f["t"])
-    frames = np.stack(frames)
+    frames, times = read_aps(path)
     fps = 1e6 * (len(times) - 1) / (times[-1] - times[0])
     events, best = simulate_timed(frames, fps, noise, repeat)
     arr = np.asarray(eventcv.numpy(events))
