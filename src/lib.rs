@@ -31,6 +31,7 @@ pub mod metrics;
 pub mod model;
 pub(crate) mod parallel;
 pub(crate) mod pipeline;
+pub(crate) mod plot;
 pub(crate) mod process;
 pub(crate) mod realtime;
 pub mod render;

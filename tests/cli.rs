@@ -395,6 +395,30 @@ fn eval_realism_compares_two_streams() {
         .filter(|s| s["distance"].as_f64().is_some_and(|d| d > 0.0))
         .count();
     assert!(moved >= 3, "{other}");
+    // The plot: a panel per distribution (rates, intervals, the spectrum where the window
+    // holds a second), both streams' colours drawn.
+    let plot = dir.join("r.png");
+    let o = v2ce()
+        .args(["eval", "realism", "--fps", "30", "--real"])
+        .arg(dir.join("a.csv"))
+        .arg("--sim")
+        .arg(dir.join("b.csv"))
+        .arg("--plot")
+        .arg(&plot)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let png = image::open(&plot).unwrap().to_rgb8();
+    assert!(
+        png.width() >= 2 * 520 && png.height() == 420,
+        "{:?}",
+        png.dimensions()
+    );
+    let has = |rgb: [u8; 3]| png.pixels().any(|p| p.0 == rgb);
+    assert!(
+        has([31, 119, 180]) && has([255, 127, 14]),
+        "both curves drawn"
+    );
     let table = run("b.csv", false);
     for s in stats {
         assert!(table.contains(s["name"].as_str().unwrap()), "{table}");

@@ -53,6 +53,10 @@ pub struct RealismArgs {
     /// Print the report as one JSON object.
     #[arg(long)]
     pub(crate) json: bool,
+    /// Also draw the distributions (per-pixel rates, inter-event intervals, the rate
+    /// spectrum), real and simulated side by side, as a PNG here.
+    #[arg(long, value_name = "P.png")]
+    pub(crate) plot: Option<PathBuf>,
 }
 
 /// How `v2ce eval` simulates the events it scores when it is given none.
@@ -234,6 +238,9 @@ pub fn eval_realism(args: RealismArgs) -> Result<()> {
         }
     };
     let report = crate::metrics::realism::compare(real, sim, size, window, floors)?;
+    if let Some(path) = &args.plot {
+        crate::metrics::realism_plot::plot(&report, path)?;
+    }
     let text = if args.json {
         serde_json::to_string(&report).map_err(|e| Error::invalid("report", e.to_string()))?
     } else {

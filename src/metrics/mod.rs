@@ -1,6 +1,7 @@
 //! Metrics that score simulated events against real recordings (V2CE_SPEC.md section 6).
 
 pub mod realism;
+pub mod realism_plot;
 pub mod stage1;
 pub mod stage2;
 

@@ -60,6 +60,55 @@ pub struct Report {
     pub sim_events: u64,
     /// The statistics, in the order of the module docs.
     pub statistics: Vec<Statistic>,
+    /// The distributions behind some of them, for a plot ([`super::realism_plot`]).
+    #[serde(skip)]
+    pub curves: Vec<Curve>,
+}
+
+/// One distribution of both streams, as a plot draws it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Curve {
+    /// What it is.
+    pub title: &'static str,
+    /// The x axis.
+    pub x_label: &'static str,
+    /// Where the points lie on the x axis.
+    pub xs: Vec<f64>,
+    /// The real stream's share at each point (0 to 1), and the simulated one's.
+    pub real: Vec<f64>,
+    /// See `real`.
+    pub sim: Vec<f64>,
+}
+
+/// Histogram bins summed into one point of a curve (a tenth of a decade).
+const CURVE_BINS: usize = 5;
+
+/// The curve of two histograms on the same bins: shares per tenth of a decade, at their
+/// centres in log10 units, trimmed to where either has any.
+fn hist_curve(title: &'static str, x_label: &'static str, a: &LogHist, b: &LogHist) -> Curve {
+    let points = |h: &LogHist| -> Vec<f64> {
+        h.counts
+            .chunks(CURVE_BINS)
+            .map(|c| c.iter().sum::<u64>() as f64 / h.total.max(1) as f64)
+            .collect()
+    };
+    let (real, sim) = (points(a), points(b));
+    let xs: Vec<f64> = (0..real.len())
+        .map(|i| {
+            a.lo + (i * CURVE_BINS) as f64 / BINS_PER_DECADE
+                + 0.5 * CURVE_BINS as f64 / BINS_PER_DECADE
+        })
+        .collect();
+    let used = |i: &usize| real[*i] > 0.0 || sim[*i] > 0.0;
+    let first = (0..real.len()).find(used).unwrap_or(0);
+    let last = (0..real.len()).rev().find(used).unwrap_or(0).max(first);
+    Curve {
+        title,
+        x_label,
+        xs: xs[first..=last].to_vec(),
+        real: real[first..=last].to_vec(),
+        sim: sim[first..=last].to_vec(),
+    }
 }
 
 /// log10 bins per decade of the histograms.
@@ -544,12 +593,37 @@ pub fn compare(
         b.spectrum.as_deref().and_then(peak_hz),
         tv,
     ));
+    let mut curves = vec![
+        hist_curve(
+            "events per second of a pixel",
+            "log10 events/s",
+            &a.rates,
+            &b.rates,
+        ),
+        hist_curve(
+            "intervals between a pixel's events of one polarity",
+            "log10 us",
+            &a.intervals,
+            &b.intervals,
+        ),
+    ];
+    if let (Some(x), Some(y)) = (&a.spectrum, &b.spectrum) {
+        let first = (1..).find(|&k| line_hz(k) >= SPECTRUM_LOW_HZ).unwrap_or(1);
+        curves.push(Curve {
+            title: "spectrum of the sensor's event rate",
+            x_label: "Hz",
+            xs: (0..x.len()).map(|i| line_hz(first + i)).collect(),
+            real: x.clone(),
+            sim: y.clone(),
+        });
+    }
     Ok(Report {
         window_us: window,
         size,
         real_events: a.events,
         sim_events: b.events,
         statistics,
+        curves,
     })
 }
 

@@ -3,56 +3,12 @@
 use super::{pareto, Row};
 use crate::error::Result;
 
-/// Where the plot's font is looked for (Debian's `fonts-dejavu-core`, and other common places);
-/// `V2CE_FONT` names another TrueType file.
-const FONTS: &[&str] = &[
-    "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
-    "/usr/share/fonts/dejavu/DejaVuSans.ttf",
-    "/usr/share/fonts/TTF/DejaVuSans.ttf",
-    "/usr/share/fonts/truetype/liberation/LiberationSans-Regular.ttf",
-    "/usr/share/fonts/liberation-sans/LiberationSans-Regular.ttf",
-];
-
-/// Registers a TrueType font for the plot's text, once per process.
-fn register_font() -> Result<()> {
-    use std::sync::OnceLock;
-    static DONE: OnceLock<std::result::Result<(), String>> = OnceLock::new();
-    DONE.get_or_init(|| {
-        let env = std::env::var_os("V2CE_FONT").map(std::path::PathBuf::from);
-        let candidates = env
-            .into_iter()
-            .chain(FONTS.iter().map(std::path::PathBuf::from));
-        for path in candidates {
-            if let Ok(bytes) = std::fs::read(&path) {
-                // The plotting crate keeps fonts for the process's life.
-                let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
-                if plotters::style::register_font(
-                    "sans-serif",
-                    plotters::style::FontStyle::Normal,
-                    bytes,
-                )
-                .is_ok()
-                {
-                    return Ok(());
-                }
-            }
-        }
-        Err(format!(
-            "no font for the plot's text: install fonts-dejavu-core (apt) or set V2CE_FONT to a \
-             .ttf file (looked in {})",
-            FONTS.join(", ")
-        ))
-    })
-    .clone()
-    .map_err(|e| crate::Error::invalid("plot", e))
-}
-
 /// Draws TF1 against speed (pairs/s, log scale), one panel per scene, every row a point (by
 /// tier) and the Pareto front ([`pareto`]) a line through its labelled points, as a PNG at
 /// `path`.
 pub fn plot(rows: &[Row], path: &std::path::Path) -> Result<()> {
     use plotters::prelude::*;
-    register_font()?;
+    crate::plot::register_font()?;
     let mut scenes: Vec<&str> = Vec::new();
     for r in rows {
         if !scenes.contains(&r.scene.as_str()) {
