@@ -249,8 +249,12 @@ def test_float_and_16_bit_frames_are_linear_light():
 
 
 def test_ctrl_c_interrupts_a_long_convert():
+    # Python installs its Ctrl-C handler only where SIGINT is not ignored when it starts, and a
+    # shell ignores SIGINT in the jobs it starts in the background (a CI runner under nohup):
+    # the child takes the handler an interactive Python has, whatever it inherited.
     code = (
-        "import sys, v2ce\n"
+        "import signal, sys, v2ce\n"
+        "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
         "print('started', flush=True)\n"
         "try:\n"
         "    v2ce.convert('fixture', size=(1280, 720))\n"
