@@ -893,12 +893,9 @@ mod tests {
         assert_eq!(&back, c);
     }
 
-    /// A noisy sensor (leak and shot noise well above the preset's) watching a scene half
-    /// still: the fit keeps noise, near the truth's rates, because the realism statistics
-    /// within the TF1 floor choose it, where TF1 alone prefers a silent sensor (it rewards
-    /// firing less where noise is random).
-    #[test]
-    fn the_fit_keeps_the_noise_a_sensor_fires() {
+    /// 16 frames at 25 fps of 48 x 32 pixels: the left half still blocks, the right half a
+    /// moving grating.
+    fn half_still() -> Vec<Frame> {
         let scene = |t: i64, x: u16, y: u16| {
             if x < 24 {
                 return 0.2 + 0.6 * ((x / 6 + y / 6) % 3) as f64 / 2.0;
@@ -907,7 +904,16 @@ mod tests {
             0.15 + 0.7 * (0.5 + 0.5 * (std::f64::consts::TAU * phase).sin())
         };
         let mut src = SceneSource::new("half still", 48, 32, 25.0, 16, Box::new(scene));
-        let frames: Vec<Frame> = std::iter::from_fn(|| src.next_frame().unwrap()).collect();
+        std::iter::from_fn(|| src.next_frame().unwrap()).collect()
+    }
+
+    /// A noisy sensor (leak and shot noise well above the preset's) watching a scene half
+    /// still: the fit keeps noise, near the truth's rates, because the realism statistics
+    /// within the TF1 floor choose it, where TF1 alone prefers a silent sensor (it rewards
+    /// firing less where noise is random).
+    #[test]
+    fn the_fit_keeps_the_noise_a_sensor_fires() {
+        let frames = half_still();
         let mut truth = Preset::Davis346.config();
         truth.leak_hz = 1.0;
         truth.shot_noise_hz = 4.0;
@@ -917,11 +923,12 @@ mod tests {
             events: &real,
             size: (48, 32),
         };
+        let still = still_pixels(&frames);
         let mut fitter = Fitter {
             rec: &rec,
             intervals: &intervals_between(&frames).unwrap(),
-            still: &still_pixels(&frames),
-            flat: &flat_pixels(&frames, 48, &still_pixels(&frames)),
+            still: &still,
+            flat: &flat_pixels(&frames, 48, &still),
             seed: 3,
             runs: 0,
         };
@@ -954,15 +961,7 @@ mod tests {
     /// within a step of the search and a depth near the truth, and the count.
     #[test]
     fn the_fit_finds_a_lamps_flicker() {
-        let scene = |t: i64, x: u16, y: u16| {
-            if x < 24 {
-                return 0.2 + 0.6 * ((x / 6 + y / 6) % 3) as f64 / 2.0;
-            }
-            let phase = (x as f64 - 30.0 * t as f64 * 1e-6) / 9.0 + y as f64 / 13.0;
-            0.15 + 0.7 * (0.5 + 0.5 * (std::f64::consts::TAU * phase).sin())
-        };
-        let mut src = SceneSource::new("half still", 48, 32, 25.0, 16, Box::new(scene));
-        let frames: Vec<Frame> = std::iter::from_fn(|| src.next_frame().unwrap()).collect();
+        let frames = half_still();
         let mut truth = Preset::Davis346.config().noiseless();
         truth.flicker_hz = 100.0;
         truth.flicker_depth = 0.3;

@@ -32,24 +32,10 @@ pub enum Eval {
 /// The flags of `v2ce eval realism`.
 #[derive(Args)]
 pub struct RealismArgs {
-    /// The real events (and, for an .aedat4 with APS frames, the frames: the window and the
-    /// noise floor's static pixels).
-    #[arg(long)]
-    pub(crate) real: PathBuf,
-    /// The simulated events; without it, the physics tier simulates them here from the
-    /// recording's APS frames (or the --frames images) with --preset / --preset-file.
-    #[arg(long)]
-    pub(crate) sim: Option<PathBuf>,
-    /// Frames (an .aedat4 with APS frames, or an image list) when --real has none.
-    #[arg(long, conflicts_with = "fps")]
-    pub(crate) frames: Option<PathBuf>,
-    /// No frames: the window is whole intervals at this rate from the first real event (the
-    /// noise floor, which needs frames, is then undefined).
-    #[arg(long)]
-    pub(crate) fps: Option<f64>,
-    /// How the events are simulated without --sim.
+    /// The two streams: the real one with its frames (the window, and the noise floor's
+    /// static pixels; with --fps the noise floor is undefined) and the simulated one.
     #[command(flatten)]
-    pub(crate) simulate: SimulateArgs,
+    pub(crate) streams: CompareArgs,
     /// Print the report as one JSON object.
     #[arg(long)]
     pub(crate) json: bool,
@@ -73,52 +59,67 @@ pub struct SimulateArgs {
     pub(crate) seed: u64,
 }
 
-impl SimulateArgs {
-    /// The events of `sim`, or those the physics tier makes of the frames of `real` (or
-    /// `frames`), checked to lie on the `size` sensor.
-    fn events(
-        &self,
-        sim: Option<&std::path::Path>,
-        real: &std::path::Path,
-        frames: Option<&std::path::Path>,
-        size: (u16, u16),
-    ) -> Result<format::Recording> {
-        let events = match sim {
-            Some(path) => format::read_events(path)?,
-            None => {
-                let mut stage1 = crate::stage1::Stage1Config::default();
-                match &self.preset_file {
-                    Some(f) => stage1.load_preset_file(f)?,
-                    None => stage1.preset = crate::stage1::Preset::from_name(&self.preset)?,
-                }
-                crate::eval::simulate_physics(real, frames, &stage1, self.seed, size, note)?
-            }
-        };
-        let name = sim.map_or_else(|| PathBuf::from("the simulated events"), PathBuf::from);
-        crate::eval::check_sensor(events.events.events(), size, &name)?;
-        Ok(events)
-    }
-}
-
-/// The flags of `v2ce eval stage1`.
+/// The real and the simulated stream `v2ce eval stage1` and `v2ce eval realism` compare.
 #[derive(Args)]
-pub struct Stage1Args {
-    /// The real events (and, for an .aedat4 with APS frames, the frame intervals).
+pub struct CompareArgs {
+    /// The real events (and, for an .aedat4 with APS frames, the frames and their intervals).
     #[arg(long)]
     pub(crate) real: PathBuf,
     /// The simulated events; without it, the physics tier simulates them here from the
     /// recording's APS frames (or the --frames images) with --preset / --preset-file.
     #[arg(long)]
     pub(crate) sim: Option<PathBuf>,
-    /// Frame times (an .aedat4 with APS frames or an IJRR images.txt) when --real has none.
+    /// Frames (an .aedat4 with APS frames, an IJRR images.txt or another frame list) when
+    /// --real has none.
     #[arg(long, conflicts_with = "fps")]
     pub(crate) frames: Option<PathBuf>,
-    /// Fixed frame rate for the intervals instead.
+    /// No frames: intervals at this fixed rate from the first real event.
     #[arg(long)]
     pub(crate) fps: Option<f64>,
     /// How the events are simulated without --sim.
     #[command(flatten)]
     pub(crate) simulate: SimulateArgs,
+}
+
+impl CompareArgs {
+    /// The real recording, its frame intervals, and the simulated events of `--sim` or those
+    /// the physics tier makes of the recording's frames, checked to lie on its sensor.
+    fn load(&self) -> Result<(format::Recording, Vec<Interval>, format::Recording)> {
+        let (real, intervals) = crate::eval::load_events_and_intervals(
+            &self.real,
+            self.frames.as_deref(),
+            self.fps,
+            note,
+        )?;
+        let size = (real.width, real.height);
+        let sim = match &self.sim {
+            Some(path) => format::read_events(path)?,
+            None => {
+                let s = &self.simulate;
+                let mut stage1 = crate::stage1::Stage1Config::default();
+                match &s.preset_file {
+                    Some(f) => stage1.load_preset_file(f)?,
+                    None => stage1.preset = crate::stage1::Preset::from_name(&s.preset)?,
+                }
+                let frames = self.frames.as_deref();
+                crate::eval::simulate_physics(&self.real, frames, &stage1, s.seed, size, note)?
+            }
+        };
+        let name = self
+            .sim
+            .clone()
+            .unwrap_or_else(|| PathBuf::from("the simulated events"));
+        crate::eval::check_sensor(sim.events.events(), size, &name)?;
+        Ok((real, intervals, sim))
+    }
+}
+
+/// The flags of `v2ce eval stage1`.
+#[derive(Args)]
+pub struct Stage1Args {
+    /// The two streams.
+    #[command(flatten)]
+    pub(crate) streams: CompareArgs,
     /// Score only these frame intervals: first (half, by time), second, all (as `v2ce dataset
     /// recording --split`, so a model is scored on the half it did not train on).
     #[arg(long, value_enum, default_value_t = crate::dataset::Split::All)]
@@ -162,8 +163,7 @@ pub struct Stage2Args {
 
 /// Runs `v2ce eval stage1`.
 pub fn eval_stage1(args: Stage1Args) -> Result<()> {
-    let (real, intervals) =
-        crate::eval::load_events_and_intervals(&args.real, args.frames.as_deref(), args.fps, note)?;
+    let (real, intervals, sim) = args.streams.load()?;
     let intervals = intervals[args.split.range(intervals.len())].to_vec();
     if intervals.is_empty() {
         return Err(Error::invalid(
@@ -172,12 +172,6 @@ pub fn eval_stage1(args: Stage1Args) -> Result<()> {
         ));
     }
     let size = (real.width, real.height);
-    let sim = args.simulate.events(
-        args.sim.as_deref(),
-        &args.real,
-        args.frames.as_deref(),
-        size,
-    )?;
     let report = crate::eval::stage1(real.events.events(), sim.events.events(), &intervals, size)?;
     let (m, t) = (report.voxels, report.timing);
     let mut out = std::io::stdout().lock();
@@ -213,8 +207,8 @@ pub fn eval_stage1(args: Stage1Args) -> Result<()> {
 
 /// Runs `v2ce eval realism`.
 pub fn eval_realism(args: RealismArgs) -> Result<()> {
-    let (real, intervals) =
-        crate::eval::load_events_and_intervals(&args.real, args.frames.as_deref(), args.fps, note)?;
+    let streams = &args.streams;
+    let (real, intervals, sim) = streams.load()?;
     let (Some(first), Some(last)) = (intervals.first(), intervals.last()) else {
         return Err(Error::invalid(
             "frames",
@@ -223,17 +217,11 @@ pub fn eval_realism(args: RealismArgs) -> Result<()> {
     };
     let window = (first.start(), last.end());
     let size = (real.width, real.height);
-    let sim = args.simulate.events(
-        args.sim.as_deref(),
-        &args.real,
-        args.frames.as_deref(),
-        size,
-    )?;
     let (real, sim) = (real.events.events(), sim.events.events());
-    let floors = match args.fps {
+    let floors = match streams.fps {
         Some(_) => None,
         None => {
-            let frames = args.frames.as_deref().unwrap_or(&args.real);
+            let frames = streams.frames.as_deref().unwrap_or(&streams.real);
             Some(crate::eval::noise_floors(frames, size, [real, sim])?)
         }
     };

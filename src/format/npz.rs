@@ -118,17 +118,24 @@ impl<W: Write + Seek> Encoder<W> {
 
 impl<W: Write + Seek> EventEncoder for Encoder<W> {
     fn write(&mut self, events: &[Event]) -> Result<()> {
+        // The events before one refused are taken, as by every other encoder.
+        let mut refused = Ok(());
+        let mut taken = 0;
         for e in events {
             if e.t < self.last_t {
-                return Err(bad(format!("{} us comes before {} us", e.t, self.last_t)));
+                refused = Err(bad(format!("{} us comes before {} us", e.t, self.last_t)));
+                break;
             }
             if e.x > i16::MAX as u16 || e.y > i16::MAX as u16 {
-                return Err(bad(format!("({}, {}) does not fit int16", e.x, e.y)));
+                refused = Err(bad(format!("({}, {}) does not fit int16", e.x, e.y)));
+                break;
             }
             self.last_t = e.t;
+            taken += 1;
         }
         // The journal's records are the toolbox's bytes while x and y fit int16.
-        self.journal.append(events)
+        self.journal.append(&events[..taken])?;
+        refused
     }
 
     /// The records go to the journal, which a killed run leaves for `v2ce repair`.
