@@ -3,10 +3,11 @@
 //!
 //! The recording's frame intervals are split in time into two halves. On a set of intervals
 //! the fit:
-//! 1. measures the **noise** the real sensor fires where the frames show no change (pixels
-//!    whose log intensity moves less than `STATIC_LOG` across an interval): ON events there
-//!    beyond the OFF ones are leak (`leak_hz`), the OFF rate (both polarities' share) is shot
-//!    noise (`shot_noise_hz`, corrected for the model's thinning by light);
+//! 1. measures the **noise** the real sensor fires on static pixels (unclipped and unchanged
+//!    over two intervals: [`FloorMeter`]) beyond what the model without noise fires there (a
+//!    pixel model fires at static pixels too, as its photoreceptor settles): ON events beyond
+//!    the OFF ones are leak (`leak_hz`), the OFF rate (both polarities' share) is shot noise
+//!    (`shot_noise_hz`, corrected for the model's thinning by light);
 //! 2. for every mismatch (`threshold_sigma`), photoreceptor bandwidth (`cutoff_hz`) and share
 //!    of the measured noise (static pixels also fire for motion the frames do not show, so the
 //!    measured rates are an upper bound) on a small grid, finds the ON and OFF thresholds that give the real
@@ -16,7 +17,7 @@
 //!    rates (their balance sets the noise floor of dark against bright pixels);
 //! 4. keeps, of the grid points whose TF1 is within `TF1_SLACK` of the best, the one closest
 //!    to the real events on the realism statistics the noise shapes (the noise floors of dark
-//!    and bright static pixels, the inter-event intervals, the pixels' rates and how many
+//!    and bright static pixels and their ON share, the inter-event intervals, the pixels' rates and how many
 //!    fire: [`crate::metrics::realism`]). TF1 is the floor, not the goal: cell by cell it
 //!    rewards a sensor for firing less, since no simulator can place random noise where the
 //!    real noise was.
@@ -34,6 +35,7 @@ use crate::frame::{Frame, FULL_SCALE};
 use crate::interval::{intervals_between, Interval};
 use crate::metrics::realism::{self, FloorMeter};
 use crate::metrics::stage1::{score, Stage1Metrics};
+use crate::stage1::physics::SHOT_HALF_LIGHT;
 use crate::stage1::{PhysicsConfig, PhysicsSim, Preset};
 
 /// Log-intensity change below which a pixel counts as static over an interval.
@@ -55,9 +57,10 @@ const SIGMAS: [f64; 3] = [0.0, 0.03, 0.06];
 const CUTOFF_SCALES: [f64; 3] = [0.5, 1.0, 2.0];
 
 /// Multiples of the measured noise rates tried: events at pixels the frames show static are
-/// not all noise (motion within an interval that the frames do not show fires them too), so
-/// the measured rates are an upper bound.
-const NOISE_SCALES: [f64; 3] = [0.0, 0.2, 1.0];
+/// not all noise (motion within an interval that the frames do not show fires them too, and
+/// the model's own share there moves with the thresholds), so the measured rates are an upper
+/// bound.
+const NOISE_SCALES: [f64; 3] = [0.0, 0.5, 1.0];
 
 /// TF1 a grid point may lose against the best one and still be chosen for being more
 /// realistic: the cell-by-cell score is a floor, not the goal (it rewards firing less).
@@ -65,9 +68,10 @@ const TF1_SLACK: f64 = 0.03;
 
 /// The realism statistics the noise shapes, whose summed distances choose among the grid
 /// points within `TF1_SLACK` ([`crate::metrics::realism`]).
-const REALISM_STATISTICS: [&str; 5] = [
+const REALISM_STATISTICS: [&str; 6] = [
     "noise_floor_dark",
     "noise_floor_bright",
+    "noise_floor_on_share",
     "inter_event_interval",
     "rate_per_pixel",
     "firing_pixels",
@@ -495,24 +499,22 @@ impl Fitter<'_> {
     }
 
     /// The flicker depth whose events at still pixels match `real_still` with `c`'s other
-    /// parameters, and the ON and OFF events at still pixels of the last run. The count jumps
-    /// where the swing passes the thresholds: a bisection, not a secant.
+    /// parameters. The count jumps where the swing passes the thresholds: a bisection, not a
+    /// secant.
     fn fit_depth(
         &mut self,
         c: &PhysicsConfig,
         range: &std::ops::Range<usize>,
         real_still: u64,
-    ) -> Result<(f64, (u64, u64))> {
+    ) -> Result<f64> {
         let mut c = c.clone();
         let mut depth = Bracket::new(0.005, 0.95);
-        let mut last = (0, 0);
         for _ in 0..FLICKER_STEPS {
             let sim = self.simulate(&c, range.clone())?;
             let (on, off, _) = self.still_events(&sim, range);
-            last = (on, off);
             c.flicker_depth = depth.next(c.flicker_depth, on + off < real_still);
         }
-        Ok((c.flicker_depth, last))
+        Ok(c.flicker_depth)
     }
 
     fn fit(
@@ -548,13 +550,11 @@ impl Fitter<'_> {
             }
         }
         // Events at still pixels that the flicker explains are not noise: the depth is fitted
-        // first, noiseless at the base thresholds, and the noise measured on what is left.
-        let mut explained = (0, 0);
+        // first, noiseless at the base thresholds, and the noise measured beyond it.
         if flicker.is_some() {
-            let c = cfg.noiseless();
-            (cfg.flicker_depth, explained) = self.fit_depth(&c, &range, real_still)?;
+            cfg.flicker_depth = self.fit_depth(&cfg.noiseless(), &range, real_still)?;
         }
-        let (leak, shot) = self.noise(&range, base, explained);
+        let (leak, shot) = self.noise(&range, &cfg)?;
         let target = Target {
             range: range.clone(),
             counts: (real_on, real_off),
@@ -641,7 +641,7 @@ impl Fitter<'_> {
                 c.threshold_off = step(c.threshold_off, off, real_off);
             }
             if target.flicker {
-                c.flicker_depth = self.fit_depth(&c, range, target.real_still)?.0;
+                c.flicker_depth = self.fit_depth(&c, range, target.real_still)?;
             }
         }
         c.validate()?;
@@ -707,46 +707,47 @@ impl Fitter<'_> {
             .sum())
     }
 
-    /// Leak and shot-noise rates from real events at static pixels (see the module docs),
-    /// less `explained` ON and OFF events there that the model's flicker makes.
+    /// Leak and shot-noise rates (see the module docs): what the real sensor fires on the
+    /// static pixels of `range` ([`FloorMeter`]) beyond what `model` without noise (its
+    /// flicker kept) fires there. ON beyond OFF is leak; OFF is half the shot noise, whose
+    /// rate in the dark follows from the model's thinning by light.
     fn noise(
-        &self,
+        &mut self,
         range: &std::ops::Range<usize>,
-        base: &PhysicsConfig,
-        explained: (u64, u64),
-    ) -> (f64, f64) {
-        let (mut pixel_seconds, mut thinning) = (0.0f64, 0.0f64);
-        for k in range.clone() {
-            let b = &self.rec.frames[k + 1];
-            let iv = self.intervals[k];
-            let seconds = (iv.end() - iv.start()) as f64 * 1e-6;
-            let mut count = 0usize;
-            for (&s, &v) in self.still[k].iter().zip(&b.luma) {
-                if s {
-                    count += 1;
-                    let intensity = v as f64 / FULL_SCALE as f64;
-                    thinning += seconds / (1.0 + intensity / 0.05);
+        model: &PhysicsConfig,
+    ) -> Result<(f64, f64)> {
+        let sim = self.simulate(&model.noiseless(), range.clone())?;
+        let mut meter = FloorMeter::new(usize::from(self.rec.size.0), FULL_SCALE);
+        let mut thinned = 0.0f64;
+        for pair in self.rec.frames[range.start..=range.end].windows(2) {
+            let [a, b] = pair else { continue };
+            meter.add(&a.luma, &b.luma, (a.t, b.t), [self.rec.events, &sim]);
+            let seconds = (b.t - a.t) as f64 * 1e-6;
+            for (i, &v) in b.luma.iter().enumerate() {
+                if meter.static_pixel(i).is_some() {
+                    let intensity = f64::from(v) / f64::from(FULL_SCALE);
+                    thinned += seconds / (1.0 + intensity / SHOT_HALF_LIGHT);
                 }
             }
-            pixel_seconds += count as f64 * seconds;
         }
-        let (on, off, _) = self.still_events(self.rec.events, range);
+        let [real, own] = meter.floors;
+        let polarities = |f: &realism::NoiseFloor| (f.on, f.dark.0 + f.bright.0 - f.on);
+        let ((real_on, real_off), (own_on, own_off)) = (polarities(&real), polarities(&own));
         let (on, off) = (
-            on.saturating_sub(explained.0),
-            off.saturating_sub(explained.1),
+            real_on.saturating_sub(own_on),
+            real_off.saturating_sub(own_off),
         );
+        let pixel_seconds = real.dark.1 + real.bright.1;
         if pixel_seconds <= 0.0 {
-            return (base.leak_hz, base.shot_noise_hz);
+            return Ok((model.leak_hz, model.shot_noise_hz));
         }
-        let leak = (on.saturating_sub(off)) as f64 / pixel_seconds;
-        // Shot noise fires either polarity, thinned by light: its dark rate gives `2 * off`
-        // events over the thinned pixel-seconds.
-        let shot = if thinning > 0.0 {
-            2.0 * off as f64 / thinning
+        let leak = on.saturating_sub(off) as f64 / pixel_seconds;
+        let shot = if thinned > 0.0 {
+            2.0 * off as f64 / thinned
         } else {
             0.0
         };
-        (leak.min(100.0), shot.min(1000.0))
+        Ok((leak.min(100.0), shot.min(1000.0)))
     }
 }
 

@@ -383,7 +383,7 @@ fn eval_realism_compares_two_streams() {
     };
     let same: serde_json::Value = serde_json::from_str(&run("a.csv", true)).unwrap();
     let stats = same["statistics"].as_array().unwrap();
-    assert_eq!(stats.len(), 11);
+    assert_eq!(stats.len(), 12);
     for s in stats {
         assert!(s["distance"].is_null() || s["distance"] == 0.0, "{s}");
     }

@@ -15,7 +15,8 @@
 //! | `neighbour_batching` | share of events that share it with an event of one of the 8 neighbouring pixels | absolute difference |
 //! | `on_share` | ON events / all events | absolute difference |
 //! | `on_off_alternation` | share of a pixel's consecutive events of opposite polarity | absolute difference |
-//! | `noise_floor_dark`, `noise_floor_bright` | events/s of a pixel whose APS value did not change between two frames, on the darker and the brighter half of those pixels | absolute log10 ratio, decades |
+//! | `noise_floor_dark`, `noise_floor_bright` | events/s of a static pixel (its APS value unclipped and unchanged over the interval and the one before: [`FloorMeter`]), on the darker and the brighter half of those pixels | absolute log10 ratio, decades |
+//! | `noise_floor_on_share` | ON events / all events on those pixels (leak fires ON, shot noise either way) | absolute difference |
 //! | `rate_spectrum_peak` | the frequency, Hz, of the strongest line of the sensor's event-rate spectrum (5-500 Hz) | total variation between the two normalised spectra |
 //!
 //! Both streams are measured over the same window and the same pixels (the noise floor: the
@@ -380,14 +381,16 @@ fn peak_hz(spectrum: &[f64]) -> Option<f64> {
     Some(line_hz(first + i))
 }
 
-/// The rates of the static pixels of a pair of frames, dark and bright halves: events and
-/// pixel-seconds of each.
+/// The rates of the settled static pixels (see [`FloorMeter`]), dark and bright halves:
+/// events and pixel-seconds of each, and the ON events of both.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct NoiseFloor {
     /// Events on the darker half of the static pixels, and their pixel-seconds.
     pub dark: (u64, f64),
     /// The same on the brighter half.
     pub bright: (u64, f64),
+    /// ON events on either half.
+    pub on: u64,
 }
 
 impl NoiseFloor {
@@ -396,22 +399,42 @@ impl NoiseFloor {
         let rate = |(n, s): (u64, f64)| (s > 0.0).then(|| n as f64 / s);
         (rate(self.dark), rate(self.bright))
     }
+
+    /// The share of the floor's events that are ON (leak fires ON only, shot noise either way).
+    pub fn on_share(&self) -> Option<f64> {
+        let all = self.dark.0 + self.bright.0;
+        (all > 0).then(|| self.on as f64 / all as f64)
+    }
 }
 
 /// A pixel whose value changes by at most this share of it (or of the dark floor below) from
-/// one frame to the next is static.
+/// one frame to the next is still over that interval.
 const STATIC_SHARE: f64 = 0.03;
 /// Values below this share of full scale count as this (APS read noise dominates there).
 const DARK_FLOOR: f64 = 0.01;
+/// A pixel at or above this share of full scale in either frame is clipped: its value cannot
+/// show a change of light, so it is never static. On the davis346 clip its clipped "still"
+/// pixels fire 2.0 events/s, two hundred times the others' floor.
+const CLIPPED: f64 = 0.98;
+/// Intervals in a row a pixel must be still to count: the interval measured and the one
+/// before. One is not enough: a pixel whose light changed just before the interval still
+/// fires as its photoreceptor settles and its half-crossed threshold completes. On the
+/// davis346 clip one still interval gives a real floor of 0.016 / 0.009 events/s (dark /
+/// bright), two 0.0045 / 0.0038, most of them ON (leak); more intervals barely lower it.
+pub const SETTLED_INTERVALS: u8 = 2;
 
-/// Measures the noise floors of a real and a simulated stream over pairs of frames: a pixel
-/// is static between two frames where its value changed by at most `STATIC_SHARE`; the static
-/// pixels are split at their median value into dark and bright.
+/// Measures the noise floors of a real and a simulated stream over consecutive frames: a pixel
+/// is static over an interval where it is settled, its value below `CLIPPED` and changed by at
+/// most `STATIC_SHARE` in this interval and each of the `SETTLED_INTERVALS - 1` before; the
+/// static pixels of each interval are split at their median value into dark and bright.
+/// Intervals must be added in time order; a gap between them starts the count again.
 #[derive(Debug, Clone)]
 pub struct FloorMeter {
     width: usize,
     full: u16,
     class: Vec<u8>,
+    still_for: Vec<u8>,
+    last_end: Option<i64>,
     values: Vec<u16>,
     /// The real stream's floor and the simulated stream's.
     pub floors: [NoiseFloor; 2],
@@ -424,8 +447,20 @@ impl FloorMeter {
             width,
             full,
             class: Vec::new(),
+            still_for: Vec::new(),
+            last_end: None,
             values: Vec::new(),
             floors: [NoiseFloor::default(); 2],
+        }
+    }
+
+    /// Whether pixel `i` (row-major) was static in the interval last added: `Some(false)` for
+    /// a dark one, `Some(true)` for a bright one, `None` where it was not static.
+    pub fn static_pixel(&self, i: usize) -> Option<bool> {
+        match self.class.get(i) {
+            Some(1) => Some(false),
+            Some(2) => Some(true),
+            _ => None,
         }
     }
 
@@ -433,21 +468,39 @@ impl FloorMeter {
     /// `sim` events (each sorted by time).
     pub fn add(&mut self, a: &[u16], b: &[u16], (t0, t1): (i64, i64), streams: [&[Event]; 2]) {
         let seconds = (t1 - t0) as f64 * 1e-6;
+        let follows = self.last_end == Some(t0) && self.still_for.len() == a.len();
+        self.last_end = Some(t1);
+        self.class.clear();
+        if !follows {
+            self.still_for.clear();
+            self.still_for.resize(a.len(), 0);
+        }
         if seconds <= 0.0 || a.len() != b.len() {
+            self.still_for.iter_mut().for_each(|s| *s = 0);
             return;
         }
         let dark_floor = DARK_FLOOR * f64::from(self.full);
+        let clipped = CLIPPED * f64::from(self.full);
         let values = &mut self.values;
         values.clear();
-        self.class.clear();
-        self.class.extend(a.iter().zip(b).map(|(&va, &vb)| {
-            let level = f64::from(va.max(vb)).max(dark_floor);
-            let still = f64::from(va.abs_diff(vb)) <= STATIC_SHARE * level;
-            if still {
-                values.push(va.max(vb));
-            }
-            u8::from(still)
-        }));
+        self.class
+            .extend(a.iter().zip(b).zip(self.still_for.iter_mut()).map(
+                |((&va, &vb), still_for)| {
+                    let top = f64::from(va.max(vb));
+                    let still = top < clipped
+                        && f64::from(va.abs_diff(vb)) <= STATIC_SHARE * top.max(dark_floor);
+                    *still_for = if still {
+                        still_for.saturating_add(1)
+                    } else {
+                        0
+                    };
+                    let settled = *still_for >= SETTLED_INTERVALS;
+                    if settled {
+                        values.push(va.max(vb));
+                    }
+                    u8::from(settled)
+                },
+            ));
         if values.is_empty() {
             return;
         }
@@ -468,20 +521,21 @@ impl FloorMeter {
             floor.dark.1 += dark as f64 * seconds;
             floor.bright.1 += bright as f64 * seconds;
             for e in time_slice(events, t0, t1) {
-                match self
+                let counted = match self
                     .class
                     .get(usize::from(e.y) * self.width + usize::from(e.x))
                 {
-                    Some(1) => floor.dark.0 += 1,
-                    Some(2) => floor.bright.0 += 1,
-                    _ => {}
-                }
+                    Some(1) => &mut floor.dark.0,
+                    Some(2) => &mut floor.bright.0,
+                    _ => continue,
+                };
+                *counted += 1;
+                floor.on += u64::from(e.on);
             }
         }
     }
 }
 
-/// Compares the `real` and `sim` streams (sorted by time) of a `size` sensor over `window`;
 /// `floors`, where frames were given, are their noise floors ([`FloorMeter`]).
 pub fn compare(
     real: &[Event],
@@ -582,6 +636,14 @@ pub fn compare(
     ] {
         statistics.push(stat(name, "events/s", r, s, log_ratio(r, s)));
     }
+    let [real_on, sim_on] = floors.map_or([None; 2], |[r, s]| [r.on_share(), s.on_share()]);
+    statistics.push(stat(
+        "noise_floor_on_share",
+        "share",
+        real_on,
+        sim_on,
+        diff(real_on, sim_on),
+    ));
     let tv = match (&a.spectrum, &b.spectrum) {
         (Some(x), Some(y)) => Some(0.5 * x.iter().zip(y).map(|(p, q)| (p - q).abs()).sum::<f64>()),
         _ => None,
@@ -869,6 +931,54 @@ mod tests {
         // Silence has no noise floor to compare: a zero rate is undefined on a log scale.
         assert_eq!(value(&r, "noise_floor_dark").1, Some(0.0));
         assert_eq!(value(&r, "noise_floor_dark").2, None);
+        // Every event here is ON; silence has no share.
+        assert_eq!(value(&r, "noise_floor_on_share").0, Some(1.0));
+        assert_eq!(value(&r, "noise_floor_on_share").1, None);
+    }
+
+    /// A pixel is static only once still for `SETTLED_INTERVALS` intervals in a row, never
+    /// where clipped, and a gap between intervals starts the count again.
+    #[test]
+    fn the_noise_floor_takes_settled_unclipped_pixels() {
+        // Four pixels: 0 still throughout, 1 clipped and still, 2 changes in interval 0 only,
+        // 3 still but dark (below the dark floor, judged against it).
+        let frames: [[u16; 4]; 4] = [
+            [30000, 65535, 10000, 100],
+            [30000, 65535, 20000, 110],
+            [30100, 65535, 20000, 100],
+            [30000, 65535, 20100, 105],
+        ];
+        let one_each: Vec<Event> = (0..3i64)
+            .flat_map(|k| {
+                (0..4u16).map(move |x| Event::new(k * 1_000_000 + 500_000, x, 0, x % 2 == 0))
+            })
+            .collect();
+        let mut meter = FloorMeter::new(4, u16::MAX);
+        let mut statics = Vec::new();
+        for k in 0..3usize {
+            let t0 = k as i64 * 1_000_000;
+            meter.add(
+                &frames[k],
+                &frames[k + 1],
+                (t0, t0 + 1_000_000),
+                [&one_each, &[]],
+            );
+            statics.push((0..4).map(|i| meter.static_pixel(i)).collect::<Vec<_>>());
+        }
+        // Interval 0: nothing settled yet. Interval 1: pixels 0 and 3 (2 changed in 0).
+        // Interval 2: pixel 2 has been still for two intervals too.
+        assert_eq!(statics[0], [None; 4]);
+        assert_eq!(statics[1], [Some(true), None, None, Some(false)]);
+        assert_eq!(statics[2].iter().filter(|s| s.is_some()).count(), 3);
+        assert_eq!(statics[2][1], None);
+        let floor = meter.floors[0];
+        assert_eq!(floor.dark.0 + floor.bright.0, 5);
+        assert!((floor.dark.1 + floor.bright.1 - 5.0).abs() < 1e-9);
+        // Counted: pixel 0 twice and pixel 2 once (ON), pixel 3 twice (OFF).
+        assert_eq!(floor.on, 3);
+        // A gap: the next interval does not follow the last, so nothing is settled in it.
+        meter.add(&frames[2], &frames[3], (9_000_000, 10_000_000), [&[], &[]]);
+        assert_eq!((0..4).filter_map(|i| meter.static_pixel(i)).count(), 0);
     }
 
     /// Empty streams, one event, one pixel, a wide sensor, a window without events: numbers or

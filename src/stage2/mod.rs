@@ -283,7 +283,9 @@ pub fn cell_rng(seed: u64, interval_start: i64, x: u16, y: u16, on: bool, width:
     CellRng::seed_from_u64(h)
 }
 
-fn splitmix(mut z: u64) -> u64 {
+/// The SplitMix64 mixer: a well-spread 64-bit hash of `z` (also the pixel model's per-pixel
+/// leak draws).
+pub(crate) fn splitmix(mut z: u64) -> u64 {
     z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
     z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
     z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);

@@ -20,7 +20,8 @@
 //! 4. **Refractory period.** A crossing within `refractory_us` of the pixel's last event resets
 //!    the memorised level without an event, so no pixel fires faster than `1 / refractory`.
 //! 5. **Noise**, drawn sparsely so its cost follows the number of noise events: leak events (ON,
-//!    `leak_hz` per pixel), shot noise (either polarity, `shot_noise_hz` per pixel in the dark,
+//!    `leak_hz` per pixel, each pixel at a steady period from its last event, which restarts the
+//!    drift: quiet pixels leak, busy ones hardly ever: `leak.rs`), shot noise (either polarity, `shot_noise_hz` per pixel in the dark,
 //!    thinned by `1 / (1 + I / I_half)` with `I_half = 0.05`), and hot pixels (a fixed set of
 //!    `hot_pixel_fraction` pixels firing at `hot_pixel_hz`).
 //!
@@ -53,8 +54,8 @@
 //! | `cutoff_hz` | Hz at full scale | 200 | 3 kHz at 1 klux \[L08\]; v2e 300 at white | fitted: an effective bandwidth for frame-interpolated input, not the pixel's own |
 //! | `dark_current` | fraction of full scale | 0.02 | 120-130 dB range \[L08, B14\] (the photodiode's is far lower) | the frames' noise floor: read noise of dark APS pixels would otherwise fire |
 //! | `linlog_knee` | fraction of full scale | 0.08 | v2e linear below 20/255 | as `dark_current` |
-//! | `leak_hz` | events/px/s | 0.02 | ~0.2 measured \[DND\]; v2e 0.01 in normal light | calibrate on the clip's still pixels |
-//! | `shot_noise_hz` | events/px/s, dark | 0.01 | ~10 in low light \[DND\]; v2e 0.001 good light, 5 noisy | as `leak_hz` (daylight clip) |
+//! | `leak_hz` | events/px/s | 0.001 | ~0.2 measured \[DND\]; v2e 0.01 in normal light | `v2ce calibrate` on the clip's static pixels: 0.0011 |
+//! | `shot_noise_hz` | events/px/s, dark | 0 | ~10 in low light \[DND\]; v2e 0.001 good light, 5 noisy | as `leak_hz`: the daylight clip's static pixels fire 96% ON, no OFF beyond the model's own |
 //! | `hot_pixel_fraction`, `hot_pixel_hz` | -, events/s | 1e-4, 2 | not published | assumption |
 //! | `scene_level`, `exposure_us` | fraction, us | 0.303, 500 | - | the clip's first APS frame |
 //! | `flicker_hz`, `flicker_depth` | Hz, - | 0, 0 | mains lamps 100/120 Hz | per scene: `v2ce calibrate` |
@@ -71,6 +72,7 @@ mod ahead;
 mod band;
 mod config;
 mod crossings;
+mod leak;
 mod stats;
 
 use rand::{Rng, SeedableRng};
@@ -107,6 +109,7 @@ pub struct PhysicsSim {
     /// Per tile: every pixel is at rest (filter settled, nothing pending).
     settled: Vec<bool>,
     hot: Vec<u32>,
+    leak: leak::Leak,
     /// Frame values per unit of calibration light in the current frame: `log_lut` and the
     /// filter rows read a value `v` as `v / light_scale` of the calibration scene's full scale.
     light_scale: f64,
@@ -259,6 +262,11 @@ impl PhysicsSim {
         crate::limits::frame_size("frame size", width.into(), height.into())?;
         let n = width as usize * height as usize;
         let per_pixel = BYTES_PER_PIXEL
+            + if cfg.leak_hz > 0.0 {
+                leak::BYTES_PER_PIXEL
+            } else {
+                0
+            }
             + match cfg.motion {
                 Motion::Linear => 0,
                 Motion::Flow => super::motion::bytes_per_pixel(cfg.max_subframes, cfg.flow_backend),
@@ -320,6 +328,7 @@ impl PhysicsSim {
             last_event: vec![i64::MIN / 2; n],
             settled: vec![false; tiles],
             hot,
+            leak: leak::Leak::new(cfg.leak_hz, seed),
             cfg,
             light_scale: 1.0,
             photo_scale: 1.0,
@@ -714,6 +723,13 @@ impl PhysicsSim {
         };
         let before = out.len();
         let w = self.width as usize;
+        self.leak.fire(
+            (t0, frame.t),
+            &mut self.last_event,
+            cfg.refractory_us,
+            w,
+            out,
+        );
         let mut emit = |i: usize, on: bool, rng: &mut Xoshiro256PlusPlus, last: &mut [i64]| {
             let t = rng.gen_range(t0 + 1..=frame.t);
             if ((t - last[i]) as f64) >= cfg.refractory_us {
@@ -721,14 +737,10 @@ impl PhysicsSim {
                 out.push(Event::new(t, (i % w) as u16, (i / w) as u16, on));
             }
         };
-        for _ in 0..count(cfg.leak_hz * n as f64, &mut rng) {
-            let i = rng.gen_range(0..n);
-            emit(i, true, &mut rng, &mut self.last_event);
-        }
         for _ in 0..count(cfg.shot_noise_hz * n as f64, &mut rng) {
             let i = rng.gen_range(0..n);
             let intensity = frame.luma[i] as f64 / FULL_SCALE as f64;
-            if rng.gen::<f64>() < 1.0 / (1.0 + intensity / (0.05 * light_scale)) {
+            if rng.gen::<f64>() < 1.0 / (1.0 + intensity / (SHOT_HALF_LIGHT * light_scale)) {
                 let on = rng.gen::<bool>();
                 emit(i, on, &mut rng, &mut self.last_event);
             }
@@ -742,6 +754,10 @@ impl PhysicsSim {
         self.stats.noise_events += (out.len() - before) as u64;
     }
 }
+
+/// The light (fraction of full scale, at the calibration scene's level) at which shot noise
+/// fires half its dark rate: it is thinned by `1 / (1 + I / SHOT_HALF_LIGHT)`.
+pub const SHOT_HALF_LIGHT: f64 = 0.05;
 
 /// The longest stretch of an interval whose noise is drawn, us (see `PhysicsSim::noise`).
 pub const MAX_NOISE_SPAN_US: i64 = 1_000_000;
