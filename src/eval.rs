@@ -343,11 +343,13 @@ pub fn load_events_and_intervals(
 
 /// The physics tier's events, with `stage1`'s preset and `seed`, for the frames of the
 /// recording `real` of `size`: its own APS frames, or those of `frames` when that is a frame
-/// source rather than an .aedat4 (`v2ce eval stage1` without `--sim`). `note` is told what is
-/// simulated before it is.
+/// source rather than an .aedat4 (`v2ce eval stage1` without `--sim`). A recording without
+/// frames, given a frame rate `fps`, is simulated from frames reconstructed from its own
+/// `events` ([`crate::reconstruct`]). `note` is told what is simulated before it is.
 pub fn simulate_physics(
     real: &Path,
     frames: Option<&Path>,
+    (events, fps): (&[crate::event::Event], Option<f64>),
     stage1: &Stage1Config,
     seed: u64,
     size: (u16, u16),
@@ -357,7 +359,31 @@ pub fn simulate_physics(
         Some(f) if !is_aedat4(f) => f,
         _ => real,
     };
-    let mut source = crate::frame::open(path, &Default::default())?;
+    // A recording has frames of its own only as an .aedat4 with an APS stream.
+    let own = (frames.is_some() || is_aedat4(real))
+        .then(|| crate::frame::open(path, &Default::default()));
+    let mut source = match (own, fps) {
+        (Some(Ok(source)), _) => source,
+        (None | Some(Err(_)), Some(fps)) if frames.is_none() => {
+            let how = crate::reconstruct::Reconstruction::default();
+            Box::new(crate::reconstruct::EventFrames::new(
+                events.to_vec(),
+                size,
+                fps,
+                how,
+            )?) as Box<dyn crate::frame::FrameSource>
+        }
+        (Some(Err(e)), _) => return Err(e),
+        (None, _) => {
+            return Err(Error::invalid(
+                "frames",
+                format!(
+                    "{} has no frames to simulate: give --frames, --fps (frames reconstructed                      from its events) or --sim",
+                    real.display()
+                ),
+            ))
+        }
+    };
     if source.size() != size {
         return Err(Error::invalid(
             "eval stage1",
@@ -372,9 +398,9 @@ pub fn simulate_physics(
     }
     let frames = crate::frame::read_frames(source.as_mut(), usize::MAX)?;
     note(&format!(
-        "simulating {} frames of {} with the physics tier (preset {})",
+        "simulating {} frames ({}) with the physics tier (preset {})",
         frames.len(),
-        path.display(),
+        source.describe(),
         stage1.preset_name()
     ));
     let events = crate::calibrate::simulate(&frames, size, &stage1.physics_config(), seed)?;

@@ -436,3 +436,92 @@ fn eval_realism_compares_two_streams() {
     assert!(!o.status.success() && err.contains("--fps"), "{err}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// `v2ce reconstruct` writes frames of an event file as a frame list (one per interval bound
+/// at --fps from the first event, times exact to the microsecond) that `convert` reads back;
+/// `eval realism --fps` without --sim simulates the same reconstruction in memory. An
+/// existing folder needs --force.
+#[test]
+fn reconstruct_writes_frames_that_convert_and_eval_read() {
+    let dir = temp_dir("reconstruct");
+    let ok = |c: &mut Command| {
+        let o = c.output().unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        o
+    };
+    let events = dir.join("a.csv");
+    ok(v2ce()
+        .args([
+            "convert",
+            "fixture",
+            "--max-frames",
+            "30",
+            "--size",
+            "160x120",
+            "-o",
+        ])
+        .arg(&events));
+    let frames = dir.join("frames");
+    let reconstruct = |force: bool| {
+        let mut c = v2ce();
+        c.arg("reconstruct")
+            .arg(&events)
+            .arg("-o")
+            .arg(&frames)
+            .args(["--fps", "30"]);
+        if force {
+            c.arg("--force");
+        }
+        c.output().unwrap()
+    };
+    assert!(reconstruct(false).status.success());
+    assert!(!reconstruct(false).status.success(), "an existing folder");
+    assert!(reconstruct(true).status.success());
+    let list = std::fs::read_to_string(frames.join("images.txt")).unwrap();
+    let times: Vec<i64> = list
+        .lines()
+        .map(|l| {
+            let t = l.split_whitespace().next().unwrap();
+            let (s, us) = t.split_once('.').unwrap();
+            assert_eq!(us.len(), 6, "{l}");
+            s.parse::<i64>().unwrap() * 1_000_000 + us.parse::<i64>().unwrap()
+        })
+        .collect();
+    assert!(times.len() >= 10, "{list}");
+    for pair in times.windows(2) {
+        assert!(
+            (33_333..=33_334).contains(&(pair[1] - pair[0])),
+            "{times:?}"
+        );
+    }
+    let text = std::fs::read_to_string(&events).unwrap();
+    let first: i64 = text
+        .lines()
+        .nth(1)
+        .unwrap()
+        .split(',')
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert_eq!(times[0], first);
+    let back = dir.join("b.csv");
+    ok(v2ce()
+        .arg("convert")
+        .arg(frames.join("images.txt"))
+        .arg("-o")
+        .arg(&back));
+    let from_files = std::fs::read_to_string(&back).unwrap().lines().count() - 1;
+    let o = ok(v2ce()
+        .args(["eval", "realism", "--json", "--fps", "30", "--real"])
+        .arg(&events));
+    let json: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let in_memory = json["sim_events"].as_u64().unwrap() as f64;
+    // The files are 8-bit sRGB; the same frames in memory are 16-bit.
+    assert!(from_files > 1000, "{from_files}");
+    assert!(
+        (in_memory / from_files as f64 - 1.0).abs() < 0.1,
+        "{in_memory} in memory, {from_files} from the files"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -413,6 +413,7 @@ fn help_texts_are_unchanged() {
         "eval realism",
         "listen",
         "render",
+        "reconstruct",
         "model",
         "model import",
         "model run",

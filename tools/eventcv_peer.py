@@ -1,7 +1,9 @@
-"""Runs the peer simulator eventcv (PyPI) on the APS frames of an AEDAT 4.0 recording and writes
+"""Runs the peer simulator eventcv (PyPI) on the APS frames of an AEDAT 4.0 recording (or the
+frames of a frame list, as `v2ce reconstruct` writes for recordings without frames) and writes
 its events as CSV (t_us,x,y,on) on the recording's clock, for `v2ce eval stage1`. Also times it.
 
     RAYON_NUM_THREADS=1 python tools/eventcv_peer.py REC.aedat4 OUT.csv [--noise] [--repeat N]
+    RAYON_NUM_THREADS=1 python tools/eventcv_peer.py FRAMES/images.txt OUT.csv [--noise]
     RAYON_NUM_THREADS=1 python tools/eventcv_peer.py --npy FRAMES.npy FPS [--noise] [--repeat N]
 
 The second form only times eventcv on uint8 frames [N, H, W] and prints `FPS <frames/s>`
@@ -43,6 +45,31 @@ def read_aps(path):
     return np.stack(frames), times
 
 
+def read_frame_list(path):
+    """The 8-bit gray images of a frame list (`t_seconds image_path` lines, as IJRR's
+    images.txt) and their times in us (needs Pillow)."""
+    from decimal import Decimal
+    from pathlib import Path
+
+    from PIL import Image
+
+    frames, times = [], []
+    base = Path(path).parent
+    for line in Path(path).read_text().splitlines():
+        if not line.strip() or line.startswith("#"):
+            continue
+        t, name = line.split()[:2]
+        times.append(int((Decimal(t) * 1_000_000).to_integral_value()))
+        frames.append(np.asarray(Image.open(base / name).convert("L"), dtype=np.uint8))
+    return np.stack(frames), times
+
+
+def read_frames(path):
+    """The frames (uint8 [N, H, W]) and their times (us) of an AEDAT 4.0 recording's APS stream
+    or of a frame list (.txt)."""
+    return read_frame_list(path) if path.endswith(".txt") else read_aps(path)
+
+
 def time_npy(argv, noise, repeat):
     frames = np.load(argv[2])
     events, best = simulate_timed(frames, float(argv[3]), noise, repeat)
@@ -55,7 +82,7 @@ def main(argv):
     if argv[1] == "--npy":
         return time_npy(argv, noise, repeat)
     path, out = argv[1], argv[2]
-    frames, times = read_aps(path)
+    frames, times = read_frames(path)
     fps = 1e6 * (len(times) - 1) / (times[-1] - times[0])
     events, best = simulate_timed(frames, fps, noise, repeat)
     arr = np.asarray(eventcv.numpy(events))

@@ -3,6 +3,7 @@ frames of an AEDAT 4.0 recording, every event stamped at the frame that showed i
 CSV (t_us,x,y,on) on the recording's clock, for `v2ce eval stage1` and `v2ce eval realism`.
 
     python tools/naive_peer.py REC.aedat4 OUT.csv [--threshold C]
+    python tools/naive_peer.py FRAMES/images.txt OUT.csv [--threshold C]
 
 Each pixel keeps the log level of its last event (the first frame's at the start); at each frame
 it fires floor(|log(v) - level| / C) events of the sign of the difference, all at the frame's
@@ -15,7 +16,7 @@ import sys
 
 import numpy as np
 
-from eventcv_peer import read_aps
+from eventcv_peer import read_frames
 
 
 def linear(frames):
@@ -28,7 +29,7 @@ def linear(frames):
 def main(argv):
     path, out = argv[1], argv[2]
     c = float(argv[argv.index("--threshold") + 1]) if "--threshold" in argv else 0.26
-    frames, times = read_aps(path)
+    frames, times = read_frames(path)
     logs = np.log(linear(frames))
     level = logs[0].copy()
     h, w = level.shape

@@ -66,7 +66,8 @@ pub struct CompareArgs {
     #[arg(long)]
     pub(crate) real: PathBuf,
     /// The simulated events; without it, the physics tier simulates them here from the
-    /// recording's APS frames (or the --frames images) with --preset / --preset-file.
+    /// recording's APS frames (or the --frames images; with --fps and no frames, frames
+    /// reconstructed from its own events) with --preset / --preset-file.
     #[arg(long)]
     pub(crate) sim: Option<PathBuf>,
     /// Frames (an .aedat4 with APS frames, an IJRR images.txt or another frame list) when
@@ -102,7 +103,8 @@ impl CompareArgs {
                     None => stage1.preset = crate::stage1::Preset::from_name(&s.preset)?,
                 }
                 let frames = self.frames.as_deref();
-                crate::eval::simulate_physics(&self.real, frames, &stage1, s.seed, size, note)?
+                let own = (real.events.events(), self.fps);
+                crate::eval::simulate_physics(&self.real, frames, own, &stage1, s.seed, size, note)?
             }
         };
         let name = self

@@ -53,6 +53,63 @@ pub struct RepairArgs {
     pub(crate) force: bool,
 }
 
+/// The flags of `v2ce reconstruct`.
+#[derive(Args)]
+pub struct ReconstructArgs {
+    /// Events: .aedat4, .raw, .csv, .npz, .h5/.hdf5, IJRR .txt.
+    pub(crate) input: PathBuf,
+    /// The folder to write: images.txt and images/frame_NNNNNNNN.png (a frame list that
+    /// convert, eval --frames and calibrate --frames read).
+    #[arg(short, long)]
+    pub(crate) output: PathBuf,
+    /// Frames per second of event time, from the first event.
+    #[arg(long, default_value_t = 30.0)]
+    pub(crate) fps: f64,
+    /// Log contrast of one event (the sensor's threshold).
+    #[arg(long, default_value_t = crate::reconstruct::Reconstruction::default().contrast)]
+    pub(crate) contrast: f64,
+    /// High-pass cutoff, Hz: how fast a pixel returns to the mean level (0: never).
+    #[arg(long, default_value_t = crate::reconstruct::Reconstruction::default().cutoff_hz)]
+    pub(crate) cutoff_hz: f64,
+    /// Sensor size when the file has none (CSV).
+    #[arg(long, value_name = "WxH")]
+    pub(crate) size: Option<String>,
+    /// Write into an existing folder.
+    #[arg(long)]
+    pub(crate) force: bool,
+}
+
+/// Runs `v2ce reconstruct`.
+pub fn reconstruct(args: ReconstructArgs) -> Result<()> {
+    if args.output.exists() && !args.force {
+        return Err(Error::invalid(
+            "output",
+            format!("{} exists (--force writes into it)", args.output.display()),
+        ));
+    }
+    let recording = crate::format::read_events(&args.input)?;
+    let size = match args.size.as_deref().map(parse_size).transpose()? {
+        Some(s) => s,
+        None => (recording.width, recording.height),
+    };
+    let how = crate::reconstruct::Reconstruction {
+        contrast: args.contrast,
+        cutoff_hz: args.cutoff_hz,
+        ..Default::default()
+    };
+    let events = recording.events.into_events();
+    let mut source = crate::reconstruct::EventFrames::new(events, size, args.fps, how)?;
+    let what = crate::frame::FrameSource::describe(&source);
+    let frames = crate::frame::images::write_list(&mut source, &args.output)?;
+    eprintln!(
+        "v2ce: {frames} frames of {} x {} ({what}) to {}",
+        size.0,
+        size.1,
+        args.output.join("images.txt").display()
+    );
+    Ok(())
+}
+
 /// The flags of `v2ce render`.
 #[derive(Args)]
 pub struct RenderArgs {

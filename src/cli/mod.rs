@@ -19,7 +19,7 @@ use self::batch::BatchArgs;
 use self::convert::ConvertArgs;
 use self::dataset::{CalibrateArgs, DatasetCommand};
 use self::eval::Eval;
-use self::events::{InfoArgs, RenderArgs, RepairArgs, TranscodeArgs};
+use self::events::{InfoArgs, ReconstructArgs, RenderArgs, RepairArgs, TranscodeArgs};
 use self::listen::ListenArgs;
 use self::model::ModelCommand;
 use self::run::{BenchArgs, BenchCommand, RunArgs};
@@ -67,6 +67,9 @@ pub enum Command {
     Bench(BenchArgs),
     /// Draw an event file: one accumulated frame (.png) or frames at a rate (.gif, .mp4).
     Render(RenderArgs),
+    /// Frames from an event file (each pixel's events integrated, high-passed), for
+    /// simulating and evaluating recordings that have no frames.
+    Reconstruct(ReconstructArgs),
     /// Receive what the daemon sends (UDP in any format, or its TCP stream): count events,
     /// measure rate, gaps and timing, optionally write them to a file.
     Listen(ListenArgs),
@@ -108,6 +111,7 @@ impl Command {
             Command::Bench(args) => run::bench(args),
             Command::Listen(args) => listen::listen(args),
             Command::Render(args) => events::render(args),
+            Command::Reconstruct(args) => events::reconstruct(args),
             Command::Model(ModelCommand::Import(args)) => model::model_import(args),
             Command::Model(ModelCommand::Run(args)) => model::model_run(args),
             Command::Model(ModelCommand::Bench(args)) => model::model_bench(args),

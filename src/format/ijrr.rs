@@ -40,6 +40,14 @@ pub fn parse_seconds_us(s: &str) -> Option<i64> {
     Some(if neg { -us } else { us })
 }
 
+/// Microseconds as a decimal number of seconds, exactly (six decimals): what
+/// [`parse_seconds_us`] reads back.
+pub fn format_seconds_us(t: i64) -> String {
+    let sign = if t < 0 { "-" } else { "" };
+    let a = t.unsigned_abs();
+    format!("{sign}{}.{:06}", a / 1_000_000, a % 1_000_000)
+}
+
 /// Whether `s` reads as a number of seconds, in range or not (NaN and infinities included):
 /// what tells a time field from a word, so that a frame list with a time out of range is still
 /// recognised as one, and its error names the line.
@@ -192,6 +200,17 @@ mod tests {
         assert_eq!(parse_seconds_us("0.0000015"), Some(2));
         assert_eq!(parse_seconds_us("-1.5"), Some(-1_500_000));
         assert_eq!(parse_seconds_us("12"), Some(12_000_000));
+        for t in [
+            0,
+            1,
+            -1,
+            -500_000,
+            1_605_116_853_975_736,
+            1 << 61,
+            -(1 << 61),
+        ] {
+            assert_eq!(parse_seconds_us(&format_seconds_us(t)), Some(t), "{t}");
+        }
         assert_eq!(parse_seconds_us("1e-3"), Some(1000));
         for bad in ["", ".", "a", "1.2.3", "1e999", "--1"] {
             assert_eq!(parse_seconds_us(bad), None, "{bad}");

@@ -320,6 +320,41 @@ impl FrameSource for ImageFolder {
     }
 }
 
+/// Writes every frame of `source` into the folder `dir` as a frame list the readers here take
+/// back (an IJRR `images.txt`: `t_seconds images/frame_NNNNNNNN.png` lines, each time exact to
+/// the microsecond), the images 8-bit gray PNG, sRGB-encoded (as camera images are; read them
+/// back with `--color srgb` or the default). Returns how many frames it wrote.
+pub fn write_list(source: &mut dyn FrameSource, dir: &Path) -> Result<usize> {
+    use std::io::Write;
+    let images = dir.join("images");
+    std::fs::create_dir_all(&images).map_err(|e| Error::io(&images, e))?;
+    let list_path = dir.join("images.txt");
+    let file = std::fs::File::create(&list_path).map_err(|e| Error::io(&list_path, e))?;
+    let mut list = std::io::BufWriter::new(file);
+    let (w, h) = source.size();
+    let mut gray = Vec::new();
+    let mut count = 0usize;
+    while let Some(frame) = source.next_frame()? {
+        let name = format!("images/frame_{count:08}.png");
+        super::color::luma_to_gray(&frame.luma, 1.0, &mut gray);
+        let img = image::GrayImage::from_raw(u32::from(w), u32::from(h), std::mem::take(&mut gray))
+            .ok_or_else(|| Error::invalid("frame", "size differs from the source's"))?;
+        let path = dir.join(&name);
+        img.save(&path)
+            .map_err(|e| Error::format(&path, e.to_string()))?;
+        gray = img.into_raw();
+        writeln!(
+            list,
+            "{} {name}",
+            crate::format::ijrr::format_seconds_us(frame.t)
+        )
+        .map_err(|e| Error::io(&list_path, e))?;
+        count += 1;
+    }
+    list.flush().map_err(|e| Error::io(&list_path, e))?;
+    Ok(count)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -1,5 +1,6 @@
 //! Frames with their real timestamps, from video files, image folders, Y4M, the APS frames of an
-//! AEDAT 4.0 recording, or scene functions ([`scene_fn`]), behind one [`FrameSource`] trait.
+//! AEDAT 4.0 recording, or scene functions ([`scene_fn`]), behind one [`FrameSource`] trait
+//! (and a recording's own events: [`crate::reconstruct`]).
 //!
 //! A [`Frame`] holds **linear** relative luminance, 16 bits per pixel (0 = black, 65535 = the
 //! source's full scale): the quantity a photodiode integrates. Conversion, in [`color`]:

@@ -28,6 +28,7 @@ use rand_xoshiro::Xoshiro256PlusPlus;
 use crate::error::{Error, Result};
 use crate::event::{sort_events, Event};
 use crate::interval::Interval;
+use crate::seed::splitmix;
 use crate::voxel::VoxelGrid;
 
 /// The random generator handed to a sampler for one cell.
@@ -281,15 +282,6 @@ pub fn cell_rng(seed: u64, interval_start: i64, x: u16, y: u16, on: bool, width:
     let cell = ((y as u64 * width as u64 + x as u64) << 1) | on as u64;
     let h = splitmix(splitmix(seed ^ splitmix(interval_start as u64)) ^ cell);
     CellRng::seed_from_u64(h)
-}
-
-/// The SplitMix64 mixer: a well-spread 64-bit hash of `z` (also the pixel model's per-pixel
-/// leak draws).
-pub(crate) fn splitmix(mut z: u64) -> u64 {
-    z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
 }
 
 #[cfg(test)]

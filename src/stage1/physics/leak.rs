@@ -16,7 +16,7 @@ use std::cmp::Reverse;
 use std::collections::BinaryHeap;
 
 use crate::event::Event;
-use crate::stage2::splitmix;
+use crate::seed::splitmix;
 
 /// Standard deviation of a pixel's log10 leak rate across pixels, decades (the v2e simulator's
 /// default rate spread, 0.1 decade: ../shared/SENSORS.md).
