@@ -430,9 +430,9 @@ impl Acceptor {
 /// shut, for the client to close its own (see [`serve`]).
 const LINGER: Duration = Duration::from_secs(1);
 
-/// Writes the greeting, every batch and the end to one client; then shuts our side and, for at
-/// most [`LINGER`], reads (and discards) until the client closes its side. That last step is a
-/// lingering close: a socket closed while the client's bytes wait unread in it resets the
+/// Writes the greeting, every batch and the end to one client; then waits, for at most
+/// [`LINGER`], for the client to close its side, shuts ours, and for at most [`LINGER`] more
+/// reads (and discards) until the client closes. That last step is a lingering close: a socket closed while the client's bytes wait unread in it resets the
 /// connection, and a client that gets the reset discards what it had not read yet, our last
 /// message among them (seen as dv-processing's reader missing the last packet on a loaded
 /// machine).
@@ -464,20 +464,40 @@ fn serve(
     stream.write_all(&buf).map_err(io)?;
     written.fetch_add(buf.len() as u64, Ordering::Relaxed);
     stream.flush().map_err(io)?;
-    stream.shutdown(std::net::Shutdown::Write).map_err(io)?;
     delivered.store(true, Ordering::Relaxed);
-    let until = Instant::now() + LINGER;
+    // A client that stops once it has everything closes first, and gets our last message
+    // before any end of stream: dv-processing's reader drops a last message that reaches it
+    // together with the end (seen on a loaded machine). One that reads to the end gets it
+    // after at most `LINGER`.
+    if !closed_within(&mut stream, LINGER) {
+        stream.shutdown(std::net::Shutdown::Write).map_err(io)?;
+        closed_within(&mut stream, LINGER);
+    }
+    Ok(())
+}
+
+/// Reads (and discards) what the client sends until it closes its side, for at most `wait`:
+/// whether it closed (or failed).
+fn closed_within(stream: &mut TcpStream, wait: Duration) -> bool {
+    let until = Instant::now() + wait;
     let mut scratch = [0u8; 4096];
     while let Some(left) = until.checked_duration_since(Instant::now()) {
         if left.is_zero() || stream.set_read_timeout(Some(left)).is_err() {
-            break;
+            return false;
         }
         match stream.read(&mut scratch) {
-            Ok(0) | Err(_) => break,
+            Ok(0) => return true,
             Ok(_) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+            Err(e) => {
+                return !matches!(
+                    e.kind(),
+                    std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                )
+            }
         }
     }
-    Ok(())
+    false
 }
 
 impl Sink for TcpSink {
@@ -563,6 +583,17 @@ impl Sink for TcpSink {
             .collect();
         let deadline = Instant::now() + self.config.finish_deadline;
         while Instant::now() < deadline && clients.iter().any(|(t, _, _)| !t.is_finished()) {
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        // Clients with everything written get their lingering close (see `serve`) before the
+        // process may end: a process that exits while a client's bytes wait unread in its
+        // socket resets the connection, and the client loses what it had not read yet.
+        let linger = Instant::now() + 2 * LINGER;
+        while Instant::now() < linger
+            && clients
+                .iter()
+                .any(|(t, _, d)| d.load(Ordering::Relaxed) && !t.is_finished())
+        {
             std::thread::sleep(Duration::from_millis(10));
         }
         for (thread, stream, delivered) in clients {
