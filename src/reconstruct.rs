@@ -16,7 +16,9 @@
 
 use crate::error::{Error, Result};
 use crate::event::Event;
+use crate::format::EventDecoder;
 use crate::frame::{Frame, FrameSource, SourceEncoding, FULL_SCALE};
+use std::path::Path;
 
 /// How events are integrated into frames.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -64,15 +66,114 @@ impl Reconstruction {
 /// Bytes a reconstruction holds per pixel (level and time of its last event, the frame).
 const BYTES_PER_PIXEL: u64 = 4 + 8 + 2;
 
+/// Events read from a file per call, when the frames read it as they go.
+const CHUNK: usize = 1 << 16;
+
+/// Where a reconstruction's events come from.
+enum Feed {
+    /// Held in memory, sorted by time.
+    Held { events: Vec<Event>, next: usize },
+    /// Read from a file in time order as the frames need them, so memory stays flat however
+    /// long the recording: `chunk[next..]` are read and not yet integrated.
+    Read {
+        decoder: Box<dyn EventDecoder + Send>,
+        chunk: Vec<Event>,
+        next: usize,
+    },
+}
+
+impl Feed {
+    /// The next event at or before `t`, taken from the feed.
+    fn take_until(&mut self, t: i64) -> Result<Option<Event>> {
+        match self {
+            Feed::Held { events, next } => match events.get(*next) {
+                Some(&e) if e.t <= t => {
+                    *next += 1;
+                    Ok(Some(e))
+                }
+                _ => Ok(None),
+            },
+            Feed::Read {
+                decoder,
+                chunk,
+                next,
+            } => {
+                if *next == chunk.len() {
+                    chunk.clear();
+                    *next = 0;
+                    if decoder.read_events(chunk, CHUNK)? == 0 {
+                        return Ok(None);
+                    }
+                }
+                match chunk.get(*next) {
+                    Some(&e) if e.t <= t => {
+                        *next += 1;
+                        Ok(Some(e))
+                    }
+                    _ => Ok(None),
+                }
+            }
+        }
+    }
+}
+
+/// What one pass over a recording's events found.
+#[derive(Debug, Clone, Copy, Default)]
+struct Scan {
+    count: u64,
+    /// The first and the last event's time.
+    span: Option<(i64, i64)>,
+    /// The largest column and row.
+    most: (u16, u16),
+    /// An event before the one ahead of it, if any: its index.
+    unsorted: Option<u64>,
+}
+
+impl Scan {
+    fn add(&mut self, events: &[Event]) {
+        for e in events {
+            match &mut self.span {
+                None => self.span = Some((e.t, e.t)),
+                Some((_, last)) => {
+                    if e.t < *last && self.unsorted.is_none() {
+                        self.unsorted = Some(self.count);
+                    }
+                    *last = (*last).max(e.t);
+                }
+            }
+            self.most = (self.most.0.max(e.x), self.most.1.max(e.y));
+            self.count += 1;
+        }
+    }
+
+    /// The sensor `size` (given, or one more than the largest column and row), checked
+    /// against the events.
+    fn sensor(&self, size: Option<(u16, u16)>) -> Result<(u16, u16)> {
+        let size = size.unwrap_or((self.most.0.saturating_add(1), self.most.1.saturating_add(1)));
+        if self.count > 0 && (self.most.0 >= size.0 || self.most.1 >= size.1) {
+            return Err(Error::invalid(
+                "events",
+                format!(
+                    "an event at column {} or row {}, off the {} x {} sensor",
+                    self.most.0, self.most.1, size.0, size.1
+                ),
+            ));
+        }
+        Ok(size)
+    }
+}
+
 /// A frame source integrating a recording's events (see the module docs).
 pub struct EventFrames {
-    events: Vec<Event>,
-    next_event: usize,
+    feed: Feed,
+    count: u64,
     times: Vec<i64>,
     next_frame: usize,
     size: (u16, u16),
     log: Vec<f32>,
     last: Vec<i64>,
+    /// The last integrated event's time.
+    last_t: i64,
     how: Reconstruction,
 }
 
@@ -80,6 +181,67 @@ impl EventFrames {
     /// Frames of `events` (sorted by time) on a `size` sensor at `fps` from the first event.
     pub fn new(
         events: Vec<Event>,
+        size: (u16, u16),
+        fps: f64,
+        how: Reconstruction,
+    ) -> Result<Self> {
+        let mut scan = Scan::default();
+        scan.add(&events);
+        if scan.unsorted.is_some() {
+            return Err(Error::invalid("events", "not sorted by time"));
+        }
+        let size = scan.sensor(Some(size))?;
+        Self::build(Feed::Held { events, next: 0 }, &scan, size, fps, how)
+    }
+
+    /// Frames of the events in `path` (any format [`crate::format::open`] reads) at `fps`
+    /// from the first event, on a `size` sensor (`None`: the file's, or the events' extent).
+    /// A file in time order is read twice, once for its span and once as the frames need its
+    /// events, so memory does not grow with its length; one out of order is read whole and
+    /// sorted, within the memory this machine has.
+    pub fn open(
+        path: &Path,
+        size: Option<(u16, u16)>,
+        fps: f64,
+        how: Reconstruction,
+    ) -> Result<Self> {
+        how.validate()?;
+        let mut decoder = crate::format::open(path)?;
+        let size = size.or(decoder.size());
+        let mut scan = Scan::default();
+        let mut chunk = Vec::new();
+        while decoder.read_events(&mut chunk, CHUNK)? > 0 {
+            scan.add(&chunk);
+            chunk.clear();
+        }
+        if let Some(at) = scan.unsorted {
+            eprintln!(
+                "v2ce: {}: event {at} comes before the one ahead of it; reading the file whole to sort it",
+                path.display()
+            );
+            crate::limits::memory(
+                "events",
+                scan.count
+                    .saturating_mul(std::mem::size_of::<Event>() as u64),
+                &format!("sorting the {} events of {}", scan.count, path.display()),
+            )?;
+            let recording = crate::format::read_events(path)?;
+            let size = size.unwrap_or((recording.width, recording.height));
+            return Self::new(recording.events.into_events(), size, fps, how);
+        }
+        let size = scan.sensor(size)?;
+        let feed = Feed::Read {
+            decoder: crate::format::open(path)?,
+            chunk,
+            next: 0,
+        };
+        Self::build(feed, &scan, size, fps, how)
+    }
+
+    /// The source over `feed`, whose events `scan` describes (sorted, on the `size` sensor).
+    fn build(
+        feed: Feed,
+        scan: &Scan,
         size: (u16, u16),
         fps: f64,
         how: Reconstruction,
@@ -92,36 +254,24 @@ impl EventFrames {
             n as u64 * BYTES_PER_PIXEL,
             &format!("frames of {} x {} from events", size.0, size.1),
         )?;
-        if let Some(e) = events.iter().find(|e| e.x >= size.0 || e.y >= size.1) {
-            return Err(Error::invalid(
-                "events",
-                format!(
-                    "an event at ({}, {}) off the {} x {} sensor",
-                    e.x, e.y, size.0, size.1
-                ),
-            ));
-        }
-        if events.windows(2).any(|p| p[1].t < p[0].t) {
-            return Err(Error::invalid("events", "not sorted by time"));
-        }
-        let first = events.first().map_or(0, |e| e.t);
-        let times = match (events.first(), events.last()) {
-            (Some(a), Some(b)) => {
-                let intervals = crate::interval::fixed_intervals(a.t, b.t, fps)?;
+        let times = match scan.span {
+            Some((first, last)) => {
+                let intervals = crate::interval::fixed_intervals(first, last, fps)?;
                 let mut times: Vec<i64> = intervals.iter().map(|iv| iv.start()).collect();
                 times.extend(intervals.last().map(|iv| iv.end()));
                 times
             }
-            _ => Vec::new(),
+            None => Vec::new(),
         };
         Ok(EventFrames {
-            events,
-            next_event: 0,
+            feed,
+            count: scan.count,
             times,
             next_frame: 0,
             size,
             log: vec![0.0; n],
-            last: vec![first; n],
+            last: vec![scan.span.map_or(0, |s| s.0); n],
+            last_t: i64::MIN,
             how,
         })
     }
@@ -144,11 +294,10 @@ impl FrameSource for EventFrames {
         self.next_frame += 1;
         let width = usize::from(self.size.0);
         let contrast = self.how.contrast as f32;
-        while let Some(&e) = self.events.get(self.next_event) {
-            if e.t > t {
-                break;
-            }
-            self.next_event += 1;
+        while let Some(e) = self.feed.take_until(t)? {
+            // The scan checked them; a file that changed since is refused, not trusted.
+            crate::format::check_event(&e, self.last_t, self.size.0, self.size.1)?;
+            self.last_t = e.t;
             let i = usize::from(e.y) * width + usize::from(e.x);
             let kept = self.decay(e.t - self.last[i]);
             self.log[i] = self.log[i] * kept + if e.on { contrast } else { -contrast };
@@ -170,21 +319,13 @@ impl FrameSource for EventFrames {
                     .clamp(0.0, full) as u16
             })
             .collect();
-        Ok(Some(Frame {
-            t,
-            width: self.size.0,
-            height: self.size.1,
-            luma,
-            exposure_us: None,
-        }))
+        Ok(Some(Frame::new(t, self.size, luma)))
     }
 
     fn describe(&self) -> String {
         format!(
             "{} events integrated at contrast {}, cutoff {} Hz",
-            self.events.len(),
-            self.how.contrast,
-            self.how.cutoff_hz
+            self.count, self.how.contrast, self.how.cutoff_hz
         )
     }
 
@@ -260,5 +401,56 @@ mod tests {
             assert!(EventFrames::new(one.clone(), (4, 4), 30.0, bad).is_err());
         }
         assert!(EventFrames::new(one, (4, 4), 0.0, how).is_err());
+    }
+
+    /// Frames read from a file as they go (more events than one read's chunk, two sensor
+    /// sizes) are the frames of the same events held in memory; a file out of time order is
+    /// sorted first; a size the events do not fit is refused.
+    #[test]
+    fn a_file_streams_to_the_frames_its_events_give() {
+        let dir = std::env::temp_dir().join(format!("v2ce-reconstruct-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let how = Reconstruction::default();
+        let mut t = 0i64;
+        let events: Vec<Event> = (0..3 * CHUNK as u64)
+            .map(|k| {
+                let r = crate::seed::splitmix(k);
+                t += (r >> 40 & 7) as i64;
+                Event::new(t, (r % 40) as u16, ((r >> 8) % 30) as u16, r >> 20 & 1 == 1)
+            })
+            .collect();
+        let write = |name: &str, events: &[Event]| {
+            let path = dir.join(name);
+            let mut out = crate::format::create(&path, crate::format::Format::Csv, 40, 30).unwrap();
+            out.write(events).unwrap();
+            out.finish().unwrap();
+            path
+        };
+        let frames =
+            |mut src: EventFrames| crate::frame::read_frames(&mut src, usize::MAX).unwrap();
+        let held = frames(EventFrames::new(events.clone(), (40, 30), 100.0, how).unwrap());
+        assert!(held.len() > 10, "{} frames", held.len());
+        let sorted = write("sorted.csv", &events);
+        let read = frames(EventFrames::open(&sorted, Some((40, 30)), 100.0, how).unwrap());
+        assert_eq!(read, held);
+        // No size given: a CSV has none, so the events' extent (40 x 30 here).
+        let read = frames(EventFrames::open(&sorted, None, 100.0, how).unwrap());
+        assert_eq!(read, held);
+        // Out of order in the file: the same frames, read whole and sorted.
+        let mut shuffled = events.clone();
+        shuffled.swap(10, 20_000);
+        let path = dir.join("unsorted.csv");
+        let text: String = std::iter::once("t_us,x,y,on\n".to_string())
+            .chain(
+                shuffled
+                    .iter()
+                    .map(|e| format!("{},{},{},{}\n", e.t, e.x, e.y, u8::from(e.on))),
+            )
+            .collect();
+        std::fs::write(&path, text).unwrap();
+        let read = frames(EventFrames::open(&path, Some((40, 30)), 100.0, how).unwrap());
+        assert_eq!(read, held);
+        assert!(EventFrames::open(&sorted, Some((40, 29)), 100.0, how).is_err());
+        std::fs::remove_dir_all(&dir).ok();
     }
 }

@@ -212,13 +212,7 @@ impl FrameSource for ArraySource {
         let luma = one
             .luma(self.linear)
             .map_err(|e| Error::invalid("frames", format!("frame {k}: {e}")))?;
-        Ok(Some(Frame {
-            t,
-            width: self.width,
-            height: self.height,
-            luma,
-            exposure_us: None,
-        }))
+        Ok(Some(Frame::new(t, (self.width, self.height), luma)))
     }
 
     fn describe(&self) -> String {
@@ -275,11 +269,5 @@ pub fn one_frame(
         return Err(type_error("frame", frame));
     }
     .map_err(|e| PyValueError::new_err(format!("frame at {t} us: {e}")))?;
-    Ok(Frame {
-        t,
-        width: size.0,
-        height: size.1,
-        luma,
-        exposure_us: None,
-    })
+    Ok(Frame::new(t, size, luma))
 }

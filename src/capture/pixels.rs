@@ -37,13 +37,7 @@ pub fn decode(layout: &Layout, data: &[u8], t: i64, origin: &str) -> Result<Fram
         PixelFormat::Yuyv => packed_luma(layout, data, 2, origin)?,
         PixelFormat::Mjpeg => mjpeg_luma(layout, data, origin)?,
     };
-    Ok(Frame {
-        t,
-        width,
-        height,
-        luma,
-        exposure_us: None,
-    })
+    Ok(Frame::new(t, (width, height), luma))
 }
 
 fn frame_size(layout: &Layout, origin: &str) -> Result<(u16, u16)> {

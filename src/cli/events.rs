@@ -87,18 +87,14 @@ pub fn reconstruct(args: ReconstructArgs) -> Result<()> {
             format!("{} exists (--force writes into it)", args.output.display()),
         ));
     }
-    let recording = crate::format::read_events(&args.input)?;
-    let size = match args.size.as_deref().map(parse_size).transpose()? {
-        Some(s) => s,
-        None => (recording.width, recording.height),
-    };
+    let size = args.size.as_deref().map(parse_size).transpose()?;
     let how = crate::reconstruct::Reconstruction {
         contrast: args.contrast,
         cutoff_hz: args.cutoff_hz,
         ..Default::default()
     };
-    let events = recording.events.into_events();
-    let mut source = crate::reconstruct::EventFrames::new(events, size, args.fps, how)?;
+    let mut source = crate::reconstruct::EventFrames::open(&args.input, size, args.fps, how)?;
+    let size = crate::frame::FrameSource::size(&source);
     let what = crate::frame::FrameSource::describe(&source);
     let frames = crate::frame::images::write_list(&mut source, &args.output)?;
     eprintln!(

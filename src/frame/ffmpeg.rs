@@ -232,13 +232,7 @@ impl FrameSource for FfmpegSource {
         self.index += 1;
         let mut luma = Vec::new();
         rgb24_to_luma(&self.rgb, &mut luma);
-        Ok(Some(Frame {
-            t,
-            width: self.size.0,
-            height: self.size.1,
-            luma,
-            exposure_us: None,
-        }))
+        Ok(Some(Frame::new(t, self.size, luma)))
     }
 
     fn describe(&self) -> String {

@@ -289,13 +289,7 @@ impl FrameSource for ImageFolder {
                 gray.pixels().map(|p| gray_to_luma(p[0])).collect()
             }
         };
-        Ok(Some(Frame {
-            t,
-            width: self.size.0,
-            height: self.size.1,
-            luma,
-            exposure_us: None,
-        }))
+        Ok(Some(Frame::new(t, self.size, luma)))
     }
 
     fn describe(&self) -> String {

@@ -46,6 +46,18 @@ pub struct Frame {
 }
 
 impl Frame {
+    /// A frame of `size` (width, height) with these values, its exposure unknown (every
+    /// source but APS frames).
+    pub fn new(t: i64, size: (u16, u16), luma: Vec<u16>) -> Self {
+        Frame {
+            t,
+            width: size.0,
+            height: size.1,
+            luma,
+            exposure_us: None,
+        }
+    }
+
     /// A frame of `width x height` filled with `value`.
     pub fn filled(t: i64, width: u16, height: u16, value: u16) -> Self {
         Frame {

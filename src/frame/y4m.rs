@@ -192,13 +192,7 @@ impl FrameSource for Y4mSource {
         let t = (self.index as i128 * 1_000_000 * self.rate.1 as i128 + self.rate.0 as i128 / 2)
             / self.rate.0 as i128;
         self.index += 1;
-        Ok(Some(Frame {
-            t: t as i64,
-            width: self.size.0,
-            height: self.size.1,
-            luma,
-            exposure_us: None,
-        }))
+        Ok(Some(Frame::new(t as i64, self.size, luma)))
     }
 
     fn describe(&self) -> String {
