@@ -14,11 +14,13 @@
 //!    ON and OFF event counts (a multiplicative secant on each, counts falling as thresholds
 //!    grow), and scores the result (TF1 on the voxels, as `v2ce eval stage1`);
 //! 3. at the best of those, tries leak and shot noise each at its own share of the measured
-//!    rates (their balance sets the noise floor of dark against bright pixels);
+//!    rates (their balance sets the noise floor of dark against bright pixels); then, at the
+//!    most realistic point so far (as in 4), the threshold noise (`threshold_noise`) on a
+//!    grid (it spreads the intervals between a pixel's events, and how soon it fires again);
 //! 4. keeps, of the grid points whose TF1 is within `TF1_SLACK` of the best, the one closest
 //!    to the real events on the realism statistics the noise shapes (the noise floors of dark
-//!    and bright static pixels and their ON share, the inter-event intervals, the pixels' rates and how many
-//!    fire: [`crate::metrics::realism`]). TF1 is the floor, not the goal: cell by cell it
+//!    and bright static pixels and their ON share, the inter-event intervals and their
+//!    refractory floor, the pixels' rates and how many fire: [`crate::metrics::realism`]). TF1 is the floor, not the goal: cell by cell it
 //!    rewards a sensor for firing less, since no simulator can place random noise where the
 //!    real noise was.
 //!
@@ -62,17 +64,21 @@ const CUTOFF_SCALES: [f64; 3] = [0.5, 1.0, 2.0];
 /// bound.
 const NOISE_SCALES: [f64; 3] = [0.0, 0.5, 1.0];
 
+/// Threshold noise values tried (log units), at the point the first grid found best.
+const THRESHOLD_NOISES: [f64; 4] = [0.0, 0.03, 0.06, 0.09];
+
 /// TF1 a grid point may lose against the best one and still be chosen for being more
 /// realistic: the cell-by-cell score is a floor, not the goal (it rewards firing less).
 const TF1_SLACK: f64 = 0.03;
 
 /// The realism statistics the noise shapes, whose summed distances choose among the grid
 /// points within `TF1_SLACK` ([`crate::metrics::realism`]).
-const REALISM_STATISTICS: [&str; 6] = [
+const REALISM_STATISTICS: [&str; 7] = [
     "noise_floor_dark",
     "noise_floor_bright",
     "noise_floor_on_share",
     "inter_event_interval",
+    "refractory_floor",
     "rate_per_pixel",
     "firing_pixels",
 ];
@@ -594,21 +600,18 @@ impl Fitter<'_> {
                 tried.push(self.try_point(c, &target)?);
             }
         }
-        // The most realistic of those within `TF1_SLACK` of the best TF1 (see the module docs).
-        let best_key = tried
+        // And, at the most realistic so far (its noise floor set), the threshold noise, which
+        // shapes the intervals between a pixel's events.
+        let at = most_realistic(&tried)?.clone();
+        for &noise in THRESHOLD_NOISES
             .iter()
-            .map(|t| t.key)
-            .fold(f64::NEG_INFINITY, f64::max);
-        tried
-            .into_iter()
-            .filter(|t| t.key >= best_key - TF1_SLACK)
-            .min_by(|a, b| {
-                a.realism
-                    .total_cmp(&b.realism)
-                    .then(b.key.total_cmp(&a.key))
-            })
-            .map(|t| t.config)
-            .ok_or_else(|| Error::invalid("calibrate", "no parameters fitted"))
+            .filter(|&&n| n != at.threshold_noise)
+        {
+            let mut c = at.clone();
+            c.threshold_noise = noise;
+            tried.push(self.try_point(c, &target)?);
+        }
+        most_realistic(&tried).cloned()
     }
 
     /// Fits the thresholds of `c` (and, under flicker, its depth) to `target`'s counts, then
@@ -659,9 +662,10 @@ impl Fitter<'_> {
         let ok = (0.8..=1.25).contains(&m.count_ratio());
         let realism = self.realism(&sim, range)?;
         tracing::debug!(
-            "calibrate: sigma {} cutoff {} leak {:.4} shot {:.4}: TF1 {:.4} (count ratio {:.3}), \
-             realism distance {realism:.4}",
+            "calibrate: sigma {} noise {} cutoff {} leak {:.4} shot {:.4}: TF1 {:.4} (count \
+             ratio {:.3}), realism distance {realism:.4}",
             c.threshold_sigma,
+            c.threshold_noise,
             c.cutoff_hz,
             c.leak_hz,
             c.shot_noise_hz,
@@ -751,6 +755,25 @@ impl Fitter<'_> {
     }
 }
 
+/// The most realistic of the points `tried` within `TF1_SLACK` of the best TF1 (see the module
+/// docs), the better TF1 among equals.
+fn most_realistic(tried: &[Tried]) -> Result<&PhysicsConfig> {
+    let best_key = tried
+        .iter()
+        .map(|t| t.key)
+        .fold(f64::NEG_INFINITY, f64::max);
+    tried
+        .iter()
+        .filter(|t| t.key >= best_key - TF1_SLACK)
+        .min_by(|a, b| {
+            a.realism
+                .total_cmp(&b.realism)
+                .then(b.key.total_cmp(&a.key))
+        })
+        .map(|t| &t.config)
+        .ok_or_else(|| Error::invalid("calibrate", "no parameters fitted"))
+}
+
 /// The preset file `calibrate` writes: every parameter, with the fit's report as comments.
 pub fn preset_file(c: &Calibration, base_name: &str, source: &str) -> Result<String> {
     let body = toml::to_string(&c.config).map_err(|e| Error::invalid("preset", e.to_string()))?;
@@ -802,7 +825,7 @@ fn findings(c: &Calibration, base_name: &str) -> Vec<String> {
 /// found, and the scores (all intervals, and each half held out).
 pub fn report(c: &Calibration, base: &PhysicsConfig, base_name: &str) -> String {
     let f = &c.config;
-    let rows: [(&str, &str, f64, f64); 9] = [
+    let rows: [(&str, &str, f64, f64); 10] = [
         ("threshold_on", "log", base.threshold_on, f.threshold_on),
         ("threshold_off", "log", base.threshold_off, f.threshold_off),
         (
@@ -810,6 +833,12 @@ pub fn report(c: &Calibration, base: &PhysicsConfig, base_name: &str) -> String 
             "log",
             base.threshold_sigma,
             f.threshold_sigma,
+        ),
+        (
+            "threshold_noise",
+            "log",
+            base.threshold_noise,
+            f.threshold_noise,
         ),
         ("cutoff_hz", "Hz", base.cutoff_hz, f.cutoff_hz),
         ("leak_hz", "Hz/px", base.leak_hz, f.leak_hz),

@@ -543,3 +543,52 @@ fn noise_work_is_bounded_for_any_gap() {
         assert!(err.contains(key), "{err}");
     }
 }
+
+/// Threshold noise: under a light rising at a steady rate `r` (log units per second), an ideal
+/// pixel with threshold `C` fires every `C / r`; with each event's threshold drawn anew with
+/// standard deviation `s`, the intervals keep their mean `C / r` and spread by `s / r`. The
+/// draws depend on the seed, not on the pixel order: the same seed gives the same events.
+#[test]
+fn threshold_noise_spreads_the_intervals_by_its_deviation() {
+    let r = 2.0;
+    let ramp = move |t: i64, _x: u16, _y: u16| 0.02 * (r * t as f64 * 1e-6).exp();
+    let intervals = |noise: f64, seed: u64| -> (Vec<f64>, Vec<Event>) {
+        let mut cfg = Preset::Ideal.config();
+        cfg.threshold_noise = noise;
+        cfg.motion = v2ce::stage1::Motion::Linear;
+        let mut src = SceneSource::new("ramp", 16, 8, 100.0, 131, Box::new(ramp));
+        let (events, _) = run(cfg, &mut src, seed);
+        let mut gaps = Vec::new();
+        for pixel in 0..16 * 8u16 {
+            let times: Vec<i64> = events
+                .iter()
+                .filter(|e| e.y * 16 + e.x == pixel)
+                .map(|e| {
+                    assert!(e.on, "an OFF event under rising light: {e:?}");
+                    e.t
+                })
+                .collect();
+            gaps.extend(times.windows(2).map(|w| (w[1] - w[0]) as f64 * 1e-6));
+        }
+        (gaps, events)
+    };
+    let c = Preset::Ideal.config().threshold_on;
+    let stats = |g: &[f64]| {
+        let mean = g.iter().sum::<f64>() / g.len() as f64;
+        let sd = (g.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / g.len() as f64).sqrt();
+        (mean, sd)
+    };
+    let (quiet, _) = intervals(0.0, 1);
+    let (mean, sd) = stats(&quiet);
+    assert!((mean - c / r).abs() < 0.01 * c / r, "mean {mean} s");
+    assert!(sd < 0.01 * c / r, "spread {sd} s without threshold noise");
+    let s = 0.05;
+    let (noisy, events) = intervals(s, 1);
+    let (mean, sd) = stats(&noisy);
+    eprintln!("threshold noise {s}: {} intervals, mean {mean:.4} s (C/r {:.4}), spread {sd:.4} s (s/r {:.4})", noisy.len(), c / r, s / r);
+    assert!(noisy.len() > 1000, "{} intervals", noisy.len());
+    assert!((mean - c / r).abs() < 0.03 * c / r, "mean {mean} s");
+    assert!((sd - s / r).abs() < 0.15 * s / r, "spread {sd} s");
+    assert_eq!(intervals(s, 1).1, events, "the same seed, the same events");
+    assert_ne!(intervals(s, 2).1, events, "another seed, other draws");
+}

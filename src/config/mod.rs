@@ -363,4 +363,20 @@ evt = 3
         );
         std::fs::remove_dir_all(&dir).unwrap();
     }
+
+    /// Every parameter a preset file holds can be overridden in `[stage1.physics]`: a whole
+    /// preset given as overrides, each value changed, makes that preset.
+    #[test]
+    fn every_preset_parameter_is_an_override() {
+        let mut sensor = crate::stage1::Preset::Dvxplorer.config();
+        sensor.threshold_noise = 0.07;
+        sensor.threshold_sigma = 0.04;
+        let table = toml::to_string(&sensor).unwrap();
+        let c = Config::parse(
+            &format!("[stage1.physics]\n{table}"),
+            std::path::Path::new("v2ce.toml"),
+        )
+        .unwrap();
+        assert_eq!(c.stage1.physics_config(), sensor);
+    }
 }

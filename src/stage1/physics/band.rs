@@ -50,6 +50,12 @@ pub(super) struct Shared<'a> {
     pub width: usize,
     pub height: usize,
     pub tile: usize,
+    /// Each pixel's own thresholds, which the threshold noise is drawn around (frame
+    /// indices; empty without threshold noise).
+    pub own_on: &'a [f32],
+    pub own_off: &'a [f32],
+    /// The simulator's seed, which the threshold noise is drawn from.
+    pub seed: u64,
 }
 
 /// The pixels of the tile rows `rows`: their state (indexed from the band's first pixel),
@@ -58,13 +64,15 @@ pub(super) struct Band<'a> {
     pub(super) shared: &'a Shared<'a>,
     rows: Range<usize>,
     /// Index of the band's first pixel and first tile in the frame.
-    base: usize,
+    pub(super) base: usize,
     first_tile: usize,
     pub(super) l_in: &'a mut [f32],
     pub(super) l_p: &'a mut [f32],
     pub(super) l_ref: &'a mut [f32],
-    pub(super) thr_on: &'a [f32],
-    pub(super) thr_off: &'a [f32],
+    pub(super) thr_on: &'a mut [f32],
+    pub(super) thr_off: &'a mut [f32],
+    /// Each pixel's events so far (empty without threshold noise).
+    pub(super) fired: &'a mut [u32],
     pub(super) last_event: &'a mut [i64],
     prev_luma: &'a mut [u16],
     settled: &'a mut [bool],
@@ -114,6 +122,10 @@ impl PhysicsSim {
             l_ref,
             thr_on,
             thr_off,
+            own_on,
+            own_off,
+            fired,
+            seed,
             last_event,
             settled,
             scratch,
@@ -128,14 +140,19 @@ impl PhysicsSim {
             width: usize::from(*width),
             height: usize::from(*height),
             tile,
+            own_on,
+            own_off,
+            seed: *seed,
         };
         let at = (split * tile).min(h) * w;
         let (in_a, in_b) = l_in.split_at_mut(at);
         let (p_a, p_b) = l_p.split_at_mut(at);
         let (ref_a, ref_b) = l_ref.split_at_mut(at);
-        let (on_a, on_b) = thr_on.split_at(at);
-        let (off_a, off_b) = thr_off.split_at(at);
+        let (on_a, on_b) = thr_on.split_at_mut(at);
+        let (off_a, off_b) = thr_off.split_at_mut(at);
         let (last_a, last_b) = last_event.split_at_mut(at);
+        let fired_at = at.min(fired.len());
+        let (fired_a, fired_b) = fired.split_at_mut(fired_at);
         let (prev_a, prev_b) = prev_luma.split_at_mut(at);
         let (settled_a, settled_b) = settled.split_at_mut(split * tiles_x);
         let [scratch_a, scratch_b] = scratch;
@@ -149,6 +166,7 @@ impl PhysicsSim {
             l_ref: ref_a,
             thr_on: on_a,
             thr_off: off_a,
+            fired: fired_a,
             last_event: last_a,
             prev_luma: prev_a,
             settled: settled_a,
@@ -165,6 +183,7 @@ impl PhysicsSim {
             l_ref: ref_b,
             thr_on: on_b,
             thr_off: off_b,
+            fired: fired_b,
             last_event: last_b,
             prev_luma: prev_b,
             settled: settled_b,
@@ -272,7 +291,7 @@ impl Band<'_> {
         let l_p = &mut self.l_p[local.clone()];
         let l_ref = &self.l_ref[local.clone()];
         let on = &self.thr_on[local.clone()];
-        let off = &self.thr_off[local];
+        let off = &self.thr_off[local.clone()];
         // In three passes over the row, so the middle one, the arithmetic, runs on vectors:
         // the tables' values of each pixel's light, one array per quantity; each pixel's
         // response over the interval and whether it stays within its thresholds (kept) or may

@@ -21,6 +21,10 @@ pub struct PhysicsConfig {
     pub threshold_off: f64,
     /// Standard deviation of the per-pixel thresholds (mismatch), in log units.
     pub threshold_sigma: f64,
+    /// Standard deviation of each event's threshold around its pixel's own, in log units:
+    /// temporal noise of the comparator and of the reset, drawn anew for a polarity each time
+    /// the pixel fires it (0: every event at the pixel's own threshold).
+    pub threshold_noise: f64,
     /// Refractory period after an event, us.
     pub refractory_us: f64,
     /// Photoreceptor cutoff at full-scale light, Hz (0: instant).
@@ -151,6 +155,7 @@ impl Preset {
                 threshold_on: 0.26,
                 threshold_off: 0.305,
                 threshold_sigma: 0.03,
+                threshold_noise: 0.06,
                 refractory_us: 100.0,
                 cutoff_hz: 200.0,
                 dark_current: 0.02,
@@ -180,6 +185,7 @@ impl Preset {
                 threshold_on: 0.25,
                 threshold_off: 0.25,
                 threshold_sigma: 0.03,
+                threshold_noise: 0.06,
                 refractory_us: 50.0,
                 cutoff_hz: 500.0,
                 dark_current: 0.01,
@@ -193,6 +199,7 @@ impl Preset {
                 threshold_on: 0.2,
                 threshold_off: 0.2,
                 threshold_sigma: 0.0,
+                threshold_noise: 0.0,
                 refractory_us: 0.0,
                 cutoff_hz: 0.0,
                 dark_current: 0.0,
@@ -219,9 +226,10 @@ impl Preset {
 }
 
 impl PhysicsConfig {
-    /// The same sensor without noise: no leak, shot noise or hot pixels.
+    /// The same sensor without noise: no leak, shot noise, hot pixels or threshold noise.
     pub fn noiseless(&self) -> Self {
         PhysicsConfig {
+            threshold_noise: 0.0,
             leak_hz: 0.0,
             shot_noise_hz: 0.0,
             hot_pixel_fraction: 0.0,
@@ -297,6 +305,12 @@ impl PhysicsConfig {
             return bad(format!(
                 "linlog_knee = {} must be in (0, 1]",
                 self.linlog_knee
+            ));
+        }
+        if !(self.threshold_noise.is_finite() && (0.0..=1.0).contains(&self.threshold_noise)) {
+            return bad(format!(
+                "threshold_noise = {} must be in [0, 1] log units",
+                self.threshold_noise
             ));
         }
         if !(0.0..=1.0).contains(&self.hot_pixel_fraction) {

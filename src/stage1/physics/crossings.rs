@@ -42,6 +42,8 @@ pub(super) struct Lane {
     u_prev: f64,
     lref: f64,
     last: i64,
+    /// The pixel's events so far (with threshold noise).
+    fired: u32,
 }
 
 impl Lane {
@@ -237,6 +239,11 @@ impl Band<'_> {
                 self.l_in[i] = lane.l1 as f32;
                 self.l_p[i] = lane.y as f32;
                 self.l_ref[i] = lane.lref as f32;
+                self.thr_on[i] = lane.on as f32;
+                self.thr_off[i] = lane.off as f32;
+                if let Some(f) = self.fired.get_mut(i) {
+                    *f = lane.fired;
+                }
                 self.last_event[i] = lane.last;
             }
         }
@@ -297,6 +304,7 @@ impl Band<'_> {
             u_prev: l0,
             lref: self.l_ref[i] as f64,
             last: self.last_event[i],
+            fired: self.fired.get(i).copied().unwrap_or(0),
         }
     }
 
@@ -313,7 +321,7 @@ impl Band<'_> {
                 if check & (1 << j) != 0 {
                     s.lref = g.lref[j];
                     self.cross(s, k, before[j], g.y[j], t0, t1, out);
-                    g.lref[j] = s.lref;
+                    (g.lref[j], g.on[j], g.off[j]) = (s.lref, s.on, s.off);
                 }
             }
         }
@@ -363,6 +371,36 @@ impl Band<'_> {
             }
             s.last = te;
             out.push(Event::new(te, s.x, s.row, polarity));
+            self.redraw_threshold(s, polarity);
+        }
+    }
+
+    /// After lane `s` fired an event of `polarity`: that polarity's threshold for its next
+    /// event, drawn around the pixel's own by the threshold noise (the comparator's and the
+    /// reset's: IEBCS, Joubert et al., Front. Neurosci. 2021, draws each event's threshold so).
+    /// The draw is a hash of the seed, the pixel and its count of events, so the events depend
+    /// neither on the order pixels are stepped in nor on the time origin. A draw below a
+    /// quarter of the pixel's own threshold is held there: a threshold stays positive.
+    fn redraw_threshold(&self, s: &mut Lane, polarity: bool) {
+        let sigma = self.shared.cfg.threshold_noise;
+        if sigma <= 0.0 {
+            return;
+        }
+        let pixel = self.base + s.i;
+        let own = if polarity {
+            self.shared.own_on[pixel]
+        } else {
+            self.shared.own_off[pixel]
+        } as f64;
+        s.fired = s.fired.wrapping_add(1);
+        let key = crate::seed::splitmix(self.shared.seed ^ 0x7E5E_7D0E)
+            ^ (pixel as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+            ^ u64::from(s.fired).rotate_left(40);
+        let drawn = (own + sigma * crate::seed::normal(key)).max(0.25 * own);
+        if polarity {
+            s.on = drawn;
+        } else {
+            s.off = drawn;
         }
     }
 }

@@ -11,7 +11,9 @@
 //!    noise while bright ones follow fast edges. `f_max = 0` means an ideal, instant pixel.
 //! 3. **Change detector.** The filtered `L_p` is compared with the level memorised at the last
 //!    event; each crossing of `+theta_on` or `-theta_off` (per-pixel thresholds drawn once from a
-//!    normal law around the preset's means, the mismatch) is an event, timed by linear
+//!    normal law around the preset's means, the mismatch; each event's threshold drawn anew
+//!    around the pixel's own with `threshold_noise`, the comparator's and the reset's temporal
+//!    noise, as IEBCS does \[IEB\]) is an event, timed by linear
 //!    interpolation inside the sub-step where it happens. The input is interpolated linearly in
 //!    `L` between frames (between the sub-frames warped along the optical flow, with `motion =
 //!    "flow"`: [`super::motion`]) and cut into sub-steps small enough (a quarter of the smaller
@@ -44,12 +46,14 @@
 //!
 //! **Parameters, units and sources** (tags as in the project's sensor notes: \[L08\]
 //! Lichtsteiner et al. JSSC 2008, \[B14\] Brandli et al. JSSC 2014, \[v2e\] the v2e simulator's
-//! defaults, \[DVM\] DVS-Voltmeter's DAVIS346 fit, \[DND\] Guo & Delbruck's noise measurements):
+//! defaults, \[DVM\] DVS-Voltmeter's DAVIS346 fit, \[DND\] Guo & Delbruck's noise measurements,
+//! \[IEB\] IEBCS, Joubert et al., Front. Neurosci. 2021):
 //!
 //! | parameter | unit | davis346 | published | how ours was set |
 //! |---|---|---|---|---|
 //! | `threshold_on/off` | ln | 0.26 / 0.305 | DAVIS240 11% contrast = 0.10 \[B14\]; ~0.19 for a DAVIS346 \[DVM\]; v2e 0.2 | `v2ce calibrate --motion flow` on the davis346 clip (their mean, 0.28, is what the linear model's count match gave: seeing the motion did not bring it nearer the published figure) |
 //! | `threshold_sigma` | ln | 0.03 | 2.1% \[L08\], 3.5% \[B14\] contrast matching; v2e 0.03 | published range |
+//! | `threshold_noise` | ln | 0.06 | IEBCS 0.02 (class default), 0.05 (its example) \[IEB\]; v2e none | `v2ce calibrate` on the clip's inter-event intervals and refractory floor |
 //! | `refractory_us` | us | 100 | not published for DAVIS; v2e 500, IEBCS 50 | between the two |
 //! | `cutoff_hz` | Hz at full scale | 200 | 3 kHz at 1 klux \[L08\]; v2e 300 at white | fitted: an effective bandwidth for frame-interpolated input, not the pixel's own |
 //! | `dark_current` | fraction of full scale | 0.02 | 120-130 dB range \[L08, B14\] (the photodiode's is far lower) | the frames' noise floor: read noise of dark APS pixels would otherwise fire |
@@ -103,8 +107,17 @@ pub struct PhysicsSim {
     l_in: Vec<f32>,
     l_p: Vec<f32>,
     l_ref: Vec<f32>,
+    /// Each pixel's thresholds for its next event: its own, moved by the threshold noise
+    /// drawn at its last event of that polarity.
     thr_on: Vec<f32>,
     thr_off: Vec<f32>,
+    /// Each pixel's own thresholds (the mismatch), which the noise is drawn around; empty
+    /// without threshold noise.
+    own_on: Vec<f32>,
+    own_off: Vec<f32>,
+    /// Each pixel's events so far (wrapping), which keys its threshold noise's draws; empty
+    /// without threshold noise.
+    fired: Vec<u32>,
     last_event: Vec<i64>,
     /// Per tile: every pixel is at rest (filter settled, nothing pending).
     settled: Vec<bool>,
@@ -267,6 +280,7 @@ impl PhysicsSim {
             } else {
                 0
             }
+            + if cfg.threshold_noise > 0.0 { 12 } else { 0 }
             + match cfg.motion {
                 Motion::Linear => 0,
                 Motion::Flow => super::motion::bytes_per_pixel(cfg.max_subframes, cfg.flow_backend),
@@ -288,6 +302,11 @@ impl PhysicsSim {
         };
         let thr_on = draw(cfg.threshold_on);
         let thr_off = draw(cfg.threshold_off);
+        let (own_on, own_off, fired) = if cfg.threshold_noise > 0.0 {
+            (thr_on.clone(), thr_off.clone(), vec![0; n])
+        } else {
+            (Vec::new(), Vec::new(), Vec::new())
+        };
         let hot_count = (cfg.hot_pixel_fraction * n as f64).round() as usize;
         let mut hot: Vec<u32> = (0..hot_count).map(|_| rng.gen_range(0..n as u32)).collect();
         hot.sort_unstable();
@@ -325,6 +344,9 @@ impl PhysicsSim {
             l_ref: vec![0.0; n],
             thr_on,
             thr_off,
+            own_on,
+            own_off,
+            fired,
             last_event: vec![i64::MIN / 2; n],
             settled: vec![false; tiles],
             hot,
