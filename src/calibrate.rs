@@ -16,7 +16,8 @@
 //! 3. at the best of those, tries leak and shot noise each at its own share of the measured
 //!    rates (their balance sets the noise floor of dark against bright pixels); then, at the
 //!    most realistic point so far (as in 4), the threshold noise (`threshold_noise`) on a
-//!    grid (it spreads the intervals between a pixel's events, and how soon it fires again);
+//!    grid (it spreads the intervals between a pixel's events, and how soon it fires again),
+//!    and at the most realistic point then, the refractory period (`refractory_us`);
 //! 4. keeps, of the grid points whose TF1 is within `TF1_SLACK` of the best, the one closest
 //!    to the real events on the realism statistics the noise shapes (the noise floors of dark
 //!    and bright static pixels and their ON share, the inter-event intervals and their
@@ -26,8 +27,8 @@
 //!
 //! The report fits on each half and scores on the other (held out), beside the base preset and
 //! the noiseless `ideal` sensor on the same intervals; the written preset is fitted on all of
-//! them. Parameters the fit does not touch (refractory period, dark current, knee, hot pixels)
-//! are the base preset's.
+//! them. Parameters the fit does not touch (dark current, knee, hot pixels) are the base
+//! preset's.
 
 use serde::Serialize;
 
@@ -64,8 +65,12 @@ const CUTOFF_SCALES: [f64; 3] = [0.5, 1.0, 2.0];
 /// bound.
 const NOISE_SCALES: [f64; 3] = [0.0, 0.5, 1.0];
 
-/// Threshold noise values tried (log units), at the point the first grid found best.
+/// Threshold noise values tried (log units), at the most realistic point of the grids before.
 const THRESHOLD_NOISES: [f64; 4] = [0.0, 0.03, 0.06, 0.09];
+
+/// Refractory periods tried (us), last, at the most realistic point so far: the real sensor's
+/// shortest intervals between a pixel's events (the refractory floor) bound it.
+const REFRACTORY_US: [f64; 4] = [100.0, 500.0, 1000.0, 2000.0];
 
 /// TF1 a grid point may lose against the best one and still be chosen for being more
 /// realistic: the cell-by-cell score is a floor, not the goal (it rewards firing less).
@@ -611,6 +616,13 @@ impl Fitter<'_> {
             c.threshold_noise = noise;
             tried.push(self.try_point(c, &target)?);
         }
+        // And the refractory period, which bounds how soon a pixel fires again.
+        let at = most_realistic(&tried)?.clone();
+        for &refractory in REFRACTORY_US.iter().filter(|&&r| r != at.refractory_us) {
+            let mut c = at.clone();
+            c.refractory_us = refractory;
+            tried.push(self.try_point(c, &target)?);
+        }
         most_realistic(&tried).cloned()
     }
 
@@ -662,10 +674,11 @@ impl Fitter<'_> {
         let ok = (0.8..=1.25).contains(&m.count_ratio());
         let realism = self.realism(&sim, range)?;
         tracing::debug!(
-            "calibrate: sigma {} noise {} cutoff {} leak {:.4} shot {:.4}: TF1 {:.4} (count \
-             ratio {:.3}), realism distance {realism:.4}",
+            "calibrate: sigma {} noise {} refractory {} cutoff {} leak {:.4} shot {:.4}: TF1 \
+             {:.4} (count ratio {:.3}), realism distance {realism:.4}",
             c.threshold_sigma,
             c.threshold_noise,
+            c.refractory_us,
             c.cutoff_hz,
             c.leak_hz,
             c.shot_noise_hz,
@@ -825,7 +838,7 @@ fn findings(c: &Calibration, base_name: &str) -> Vec<String> {
 /// found, and the scores (all intervals, and each half held out).
 pub fn report(c: &Calibration, base: &PhysicsConfig, base_name: &str) -> String {
     let f = &c.config;
-    let rows: [(&str, &str, f64, f64); 10] = [
+    let rows: [(&str, &str, f64, f64); 11] = [
         ("threshold_on", "log", base.threshold_on, f.threshold_on),
         ("threshold_off", "log", base.threshold_off, f.threshold_off),
         (
@@ -840,6 +853,7 @@ pub fn report(c: &Calibration, base: &PhysicsConfig, base_name: &str) -> String 
             base.threshold_noise,
             f.threshold_noise,
         ),
+        ("refractory_us", "us", base.refractory_us, f.refractory_us),
         ("cutoff_hz", "Hz", base.cutoff_hz, f.cutoff_hz),
         ("leak_hz", "Hz/px", base.leak_hz, f.leak_hz),
         (

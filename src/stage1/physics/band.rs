@@ -291,7 +291,7 @@ impl Band<'_> {
         let l_p = &mut self.l_p[local.clone()];
         let l_ref = &self.l_ref[local.clone()];
         let on = &self.thr_on[local.clone()];
-        let off = &self.thr_off[local.clone()];
+        let off = &self.thr_off[local];
         // In three passes over the row, so the middle one, the arithmetic, runs on vectors:
         // the tables' values of each pixel's light, one array per quantity; each pixel's
         // response over the interval and whether it stays within its thresholds (kept) or may

@@ -156,7 +156,8 @@ impl Preset {
                 threshold_off: 0.305,
                 threshold_sigma: 0.03,
                 threshold_noise: 0.06,
-                refractory_us: 100.0,
+                // `v2ce calibrate` on the clip's refractory floor (docs/physics.md).
+                refractory_us: 1000.0,
                 cutoff_hz: 200.0,
                 dark_current: 0.02,
                 linlog_knee: 0.08,

@@ -54,7 +54,7 @@
 //! | `threshold_on/off` | ln | 0.26 / 0.305 | DAVIS240 11% contrast = 0.10 \[B14\]; ~0.19 for a DAVIS346 \[DVM\]; v2e 0.2 | `v2ce calibrate --motion flow` on the davis346 clip (their mean, 0.28, is what the linear model's count match gave: seeing the motion did not bring it nearer the published figure) |
 //! | `threshold_sigma` | ln | 0.03 | 2.1% \[L08\], 3.5% \[B14\] contrast matching; v2e 0.03 | published range |
 //! | `threshold_noise` | ln | 0.06 | IEBCS 0.02 (class default), 0.05 (its example) \[IEB\]; v2e none | `v2ce calibrate` on the clip's inter-event intervals and refractory floor |
-//! | `refractory_us` | us | 100 | not published for DAVIS; v2e 500, IEBCS 50 | between the two |
+//! | `refractory_us` | us | 1000 | not published for DAVIS; v2e 500, IEBCS 50 | `v2ce calibrate` (0.1, 0.5, 1, 2 ms) on the clip, whose real refractory floor (1st percentile of a pixel's intervals) is 1.95 ms |
 //! | `cutoff_hz` | Hz at full scale | 200 | 3 kHz at 1 klux \[L08\]; v2e 300 at white | fitted: an effective bandwidth for frame-interpolated input, not the pixel's own |
 //! | `dark_current` | fraction of full scale | 0.02 | 120-130 dB range \[L08, B14\] (the photodiode's is far lower) | the frames' noise floor: read noise of dark APS pixels would otherwise fire |
 //! | `linlog_knee` | fraction of full scale | 0.08 | v2e linear below 20/255 | as `dark_current` |
