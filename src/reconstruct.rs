@@ -69,50 +69,32 @@ const BYTES_PER_PIXEL: u64 = 4 + 8 + 2;
 /// Events read from a file per call, when the frames read it as they go.
 const CHUNK: usize = 1 << 16;
 
-/// Where a reconstruction's events come from.
-enum Feed {
-    /// Held in memory, sorted by time.
-    Held { events: Vec<Event>, next: usize },
-    /// Read from a file in time order as the frames need them, so memory stays flat however
-    /// long the recording: `chunk[next..]` are read and not yet integrated.
-    Read {
-        decoder: Box<dyn EventDecoder + Send>,
-        chunk: Vec<Event>,
-        next: usize,
-    },
+/// A reconstruction's events in time order: `chunk[next..]` are not yet integrated, and the
+/// decoder, if any, reads the rest of a file as the frames need them (so memory stays flat
+/// however long the recording); without one, `chunk` holds them all.
+struct Feed {
+    chunk: Vec<Event>,
+    next: usize,
+    decoder: Option<Box<dyn EventDecoder + Send>>,
 }
 
 impl Feed {
     /// The next event at or before `t`, taken from the feed.
     fn take_until(&mut self, t: i64) -> Result<Option<Event>> {
-        match self {
-            Feed::Held { events, next } => match events.get(*next) {
-                Some(&e) if e.t <= t => {
-                    *next += 1;
-                    Ok(Some(e))
-                }
-                _ => Ok(None),
-            },
-            Feed::Read {
-                decoder,
-                chunk,
-                next,
-            } => {
-                if *next == chunk.len() {
-                    chunk.clear();
-                    *next = 0;
-                    if decoder.read_events(chunk, CHUNK)? == 0 {
-                        return Ok(None);
-                    }
-                }
-                match chunk.get(*next) {
-                    Some(&e) if e.t <= t => {
-                        *next += 1;
-                        Ok(Some(e))
-                    }
-                    _ => Ok(None),
-                }
+        if self.next == self.chunk.len() {
+            let Some(decoder) = &mut self.decoder else {
+                return Ok(None);
+            };
+            self.chunk.clear();
+            self.next = 0;
+            decoder.read_events(&mut self.chunk, CHUNK)?;
+        }
+        match self.chunk.get(self.next) {
+            Some(&e) if e.t <= t => {
+                self.next += 1;
+                Ok(Some(e))
             }
+            _ => Ok(None),
         }
     }
 }
@@ -191,7 +173,12 @@ impl EventFrames {
             return Err(Error::invalid("events", "not sorted by time"));
         }
         let size = scan.sensor(Some(size))?;
-        Self::build(Feed::Held { events, next: 0 }, &scan, size, fps, how)
+        let feed = Feed {
+            chunk: events,
+            next: 0,
+            decoder: None,
+        };
+        Self::build(feed, &scan, size, fps, how)
     }
 
     /// Frames of the events in `path` (any format [`crate::format::open`] reads) at `fps`
@@ -230,10 +217,10 @@ impl EventFrames {
             return Self::new(recording.events.into_events(), size, fps, how);
         }
         let size = scan.sensor(size)?;
-        let feed = Feed::Read {
-            decoder: crate::format::open(path)?,
+        let feed = Feed {
             chunk,
             next: 0,
+            decoder: Some(crate::format::open(path)?),
         };
         Self::build(feed, &scan, size, fps, how)
     }
