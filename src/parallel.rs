@@ -1,5 +1,10 @@
-//! Two jobs side by side: the helper thread a stage borrows for work that splits in two (the
-//! motion model's forward and backward flows and its sub-frames, the pixel model's bands).
+//! The helper threads a stage borrows for work that splits: two jobs side by side (the motion
+//! model's forward and backward flows and its sub-frames), or many pieces taken from one queue
+//! by every helper until none is left (the pixel model's bands of tile rows, [`each`]).
+//!
+//! There is one helper per core by default; `V2CE_THREADS` sets how many threads work on a
+//! stage's split work (1: none, everything on the stage's own thread, and no look-ahead
+//! worker beside it).
 
 /// Runs `a` here and, when `parallel`, `b` at the same time on one of the process's helper
 /// threads (named `v2ce-helper`, one per core, started on first use and kept: a thread
@@ -26,13 +31,70 @@ pub fn side_by_side<A, B: Send>(
     (ra, rb)
 }
 
-/// The helper threads, started once (none where the system gives no thread).
+/// Runs `work` on every item: when `parallel`, here and on helper threads at once, each
+/// taking the next item from one queue until none is left (so a few slow items do not hold
+/// the others up, and a helper busy elsewhere leaves its share to the rest); else here in
+/// order. Returns when every item is done; a panic in one is resumed here.
+pub fn each<T: Send>(parallel: bool, items: &mut [T], work: impl Fn(&mut T) + Sync) {
+    let pool = match helpers() {
+        Some(pool) if parallel && items.len() > 1 => pool,
+        _ => return items.iter_mut().for_each(work),
+    };
+    // Each item is taken by one thread only: its lock is never contended.
+    let slots: Vec<std::sync::Mutex<&mut T>> =
+        items.iter_mut().map(std::sync::Mutex::new).collect();
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let take = || {
+        while let Some(slot) = slots.get(next.fetch_add(1, std::sync::atomic::Ordering::Relaxed)) {
+            work(&mut slot.lock().unwrap_or_else(|e| e.into_inner()));
+        }
+    };
+    let helpers = (threads() - 1).min(slots.len() - 1);
+    pool.in_place_scope(|scope| {
+        for _ in 0..helpers {
+            scope.spawn(|_| take());
+        }
+        take();
+    });
+}
+
+/// How many threads work on a stage's split work: `V2CE_THREADS` where set to a number from 1
+/// to [`MAX_THREADS`], else the machine's cores.
+pub fn threads() -> usize {
+    static THREADS: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
+    *THREADS.get_or_init(|| {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        match std::env::var("V2CE_THREADS") {
+            Ok(v) => match v.trim().parse::<usize>() {
+                Ok(n) if (1..=MAX_THREADS).contains(&n) => n,
+                _ => {
+                    tracing::warn!(
+                        "V2CE_THREADS={v:?} is not a number from 1 to {MAX_THREADS}: using the \
+                         {cores} cores"
+                    );
+                    cores
+                }
+            },
+            Err(_) => cores,
+        }
+        .clamp(1, MAX_THREADS)
+    })
+}
+
+/// The most helper threads `V2CE_THREADS` may ask for.
+pub const MAX_THREADS: usize = 256;
+
+/// The helper threads, started once: none with one thread (or where the system gives no
+/// thread).
 fn helpers() -> Option<&'static rayon::ThreadPool> {
     static POOL: std::sync::OnceLock<Option<rayon::ThreadPool>> = std::sync::OnceLock::new();
     POOL.get_or_init(|| {
-        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let threads = threads();
+        if threads <= 1 {
+            return None;
+        }
         rayon::ThreadPoolBuilder::new()
-            .num_threads(cores.max(1))
+            .num_threads(threads)
             .thread_name(|_| "v2ce-helper".into())
             .build()
             .map_err(|e| tracing::warn!("no helper threads ({e}): split work runs on one thread"))
@@ -77,6 +139,16 @@ mod tests {
         }
     }
 
+    /// Every item is worked on once, in parallel or not.
+    #[test]
+    fn each_item_is_worked_on_once() {
+        for parallel in [false, true] {
+            let mut items: Vec<(usize, u32)> = (0..100).map(|i| (i, 0)).collect();
+            each(parallel, &mut items, |(i, n)| *n += 1 + *i as u32);
+            assert!(items.iter().all(|&(i, n)| n == 1 + i as u32));
+        }
+    }
+
     /// Both jobs run once, on a thread or here, and their results come back in order.
     #[test]
     fn both_jobs_run_and_return() {
@@ -84,7 +156,7 @@ mod tests {
             let here = std::thread::current().id();
             let (a, (b, there)) = side_by_side(parallel, || 1, || (2, std::thread::current().id()));
             assert_eq!((a, b), (1, 2));
-            assert_eq!(there == here, !parallel);
+            assert_eq!(there == here, !parallel || threads() <= 1);
         }
     }
 }

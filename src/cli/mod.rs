@@ -62,8 +62,8 @@ pub enum Command {
     Run(RunArgs),
     /// List the cameras with their formats, sizes and frame rates.
     Devices,
-    /// Measure the daemon: capture-to-send latency, CPU and memory at 346x260 and 640x480 on
-    /// the replayed fixture video.
+    /// Measure the daemon: capture-to-send latency, CPU (per frame at each sub-frame cap) and
+    /// memory at 346x260, 640x480 and 1280x720 on the replayed fixture video.
     Bench(BenchArgs),
     /// Draw an event file: one accumulated frame (.png) or frames at a rate (.gif, .mp4).
     Render(RenderArgs),

@@ -121,7 +121,11 @@ pub struct BenchArgs {
     #[arg(long, default_value_t = 30.0)]
     pub(crate) seconds: f64,
     /// Sizes to measure.
-    #[arg(long, value_delimiter = ',', default_value = "346x260,640x480")]
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "346x260,640x480,1280x720"
+    )]
     pub(crate) sizes: Vec<String>,
     /// Print the results as JSON lines.
     #[arg(long)]

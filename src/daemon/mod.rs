@@ -296,6 +296,12 @@ pub struct BenchResult {
     pub subframe_cap_mean: Option<f64>,
     /// See `subframe_cap_mean`.
     pub subframe_cap_final: Option<u32>,
+    /// The process's CPU per frame at each sub-frame cap it ran under (the tier's level of
+    /// detail), highest first: over the seconds whose cap did not change, with the frames
+    /// they held. Empty for a tier without levels.
+    pub cpu_per_frame: Vec<LevelCost>,
+    /// The process's CPU over the run's wall time: the cores it kept busy on average.
+    pub cores_used: f64,
     /// This run's CPU time over its wall time, percent of one core (the receiver's included).
     pub cpu_percent: f64,
     /// The daemon's own threads' CPU (all but the bench's receiver), percent of one core.
@@ -318,7 +324,7 @@ impl BenchResult {
         format!(
             "{}x{} {} L={} stride {}: {:.1} frames/s ({} dropped){}, {:.0} events/s; capture-to-send latency p50 \
              {:.2} ms, p90 {:.2} ms, p99 {:.2} ms, max {:.2} ms (budget {:.1} ms: {}); cpu \
-             {:.1}% of a core (the daemon's threads {:.1}%: {}); rss {}..{} KiB, first minute max {} KiB, last minute max {} KiB; \
+             {:.1}% of a core ({:.2} cores; the daemon's threads {:.1}%: {}){}; rss {}..{} KiB, first minute max {} KiB, last minute max {} KiB; \
              udp receiver: {} of {} events ({} sent late), arrival minus event time{}, at most {} \
              datagrams in one ms",
             self.size.0,
@@ -344,6 +350,7 @@ impl BenchResult {
                 "missed"
             },
             self.cpu_percent,
+            self.cores_used,
             self.daemon_cpu_percent,
             self.threads
                 .iter()
@@ -351,6 +358,18 @@ impl BenchResult {
                 .map(|(n, p)| format!("{n} {p:.1}"))
                 .collect::<Vec<_>>()
                 .join(", "),
+            if self.cpu_per_frame.is_empty() {
+                String::new()
+            } else {
+                format!(
+                    "; cpu per frame by sub-frame cap: {}",
+                    self.cpu_per_frame
+                        .iter()
+                        .map(|c| format!("{} {:.1} ms ({} frames)", c.level, c.cpu_ms, c.frames))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                )
+            },
             self.rss_range_kib.0,
             self.rss_range_kib.1,
             self.rss_first_last_minute_kib.0,
@@ -365,6 +384,55 @@ impl BenchResult {
         )
     }
 }
+
+/// The CPU a frame took at one level of Stage 1's detail (see [`BenchResult::cpu_per_frame`]).
+#[derive(Debug, Clone, Copy, Serialize, PartialEq)]
+pub struct LevelCost {
+    /// The level: the physics tier's sub-frame cap.
+    pub level: u32,
+    /// Frames through Stage 1 at it.
+    pub frames: u64,
+    /// The process's CPU (user + system) per frame, ms.
+    pub cpu_ms: f64,
+}
+
+/// The bench's snapshots every second: the process's CPU and the frames through Stage 1,
+/// summed by Stage 1's level of detail over the seconds it held one level.
+#[derive(Debug, Default)]
+struct ByLevel {
+    last: Option<(Option<u32>, f64, u64)>,
+    /// Per level: frames and CPU seconds.
+    sums: std::collections::BTreeMap<u32, (u64, f64)>,
+}
+
+impl ByLevel {
+    fn tick(&mut self, s: &Snapshot) {
+        let level = s.stage1.as_ref().and_then(|t| t.level);
+        let now = (level, s.cpu_s, s.frames_processed);
+        if let Some((Some(before), cpu, frames)) = self.last.replace(now) {
+            if level == Some(before) && s.frames_processed > frames {
+                let sum = self.sums.entry(before).or_default();
+                sum.0 += s.frames_processed - frames;
+                sum.1 += s.cpu_s - cpu;
+            }
+        }
+    }
+
+    fn table(&self) -> Vec<LevelCost> {
+        self.sums
+            .iter()
+            .rev()
+            .map(|(&level, &(frames, cpu))| LevelCost {
+                level,
+                frames,
+                cpu_ms: cpu * 1e3 / frames.max(1) as f64,
+            })
+            .collect()
+    }
+}
+
+/// Ticks of one second between two of the bench's stats lines.
+const BENCH_TICKS_PER_LINE: u64 = 10;
 
 /// The sub-frame cap's time-weighted mean and final value from a tier's record, where it has
 /// one (the physics tier's `motion`, after some interval ran under `motion = "flow"`).
@@ -448,11 +516,19 @@ pub fn bench(
     let threads = crate::process::ThreadCpu::start()
         .map_err(|e| Error::Run(format!("cannot start the CPU sampler: {e}")))?;
     let mut rss = Vec::new();
+    let mut by_level = ByLevel::default();
+    let mut ticks = 0u64;
     let mut on_tick = |s: &Snapshot| {
-        tracing::info!("{}", s.line());
-        rss.push(s.rss_kib);
+        by_level.tick(s);
+        // The stats line and the memory every 10 s, as a daemon logs them.
+        if ticks % BENCH_TICKS_PER_LINE == BENCH_TICKS_PER_LINE - 1 {
+            tracing::info!("{}", s.line());
+            rss.push(s.rss_kib);
+        }
+        ticks += 1;
     };
     let mut pipeline_options = options(&config.run);
+    pipeline_options.tick = Duration::from_secs(1);
     pipeline_options.counters = http.as_ref().map(|(_, status)| status.counters.clone());
     if let Some((_, status)) = &http {
         status.running.store(true, Ordering::Relaxed);
@@ -510,6 +586,8 @@ pub fn bench(
         },
         subframe_cap_mean: cap.map(|c| c.0),
         subframe_cap_final: cap.map(|c| c.1),
+        cpu_per_frame: by_level.table(),
+        cores_used: (s.cpu_s - cpu_before) / seconds,
         stage1: report.stage1.clone(),
         cpu_percent: 100.0 * (s.cpu_s - cpu_before) / seconds,
         daemon_cpu_percent: threads

@@ -364,7 +364,13 @@ pub fn run(
         while !(capture.is_finished() && handles.iter().all(|h| h.is_finished())) {
             std::thread::sleep(Duration::from_millis(10));
             if Instant::now() >= next_tick {
-                on_tick(&counters.snapshot());
+                let mut snapshot = counters.snapshot();
+                snapshot.stage1 = stage1_stats
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .record
+                    .status();
+                on_tick(&snapshot);
                 next_tick += options.tick;
             }
         }

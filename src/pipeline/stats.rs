@@ -218,6 +218,10 @@ pub struct Snapshot {
     pub rss_kib: u64,
     /// Peak resident memory, KiB.
     pub max_rss_kib: u64,
+    /// How Stage 1 stands (its tier's status: the physics tier's sub-frame cap), where the
+    /// pipeline filled it in.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub stage1: Option<crate::stage1::TierStatus>,
 }
 
 impl Snapshot {
@@ -232,7 +236,7 @@ impl Snapshot {
         format!(
             "frames in {} (dropped {}), {:.1} frames/s, {:.0} events/s, {} events; queues {}; \
              latency p50 {:.1} ms p90 {:.1} ms p99 {:.1} ms max {:.1} ms; capture lag p99 {:.1} \
-             ms; cpu {:.0}%, rss {} MiB",
+             ms; cpu {:.0}%, rss {} MiB{}",
             self.frames_in,
             self.frames_dropped,
             self.frames_per_s,
@@ -245,7 +249,11 @@ impl Snapshot {
             l.max_ms,
             self.capture_lag.p99_ms,
             self.cpu_percent,
-            self.rss_kib / 1024
+            self.rss_kib / 1024,
+            self.stage1
+                .as_ref()
+                .map(|s| format!("; stage 1: {}", s.line))
+                .unwrap_or_default()
         )
     }
 }
@@ -509,6 +517,7 @@ impl Counters {
             cpu_percent: 100.0 * (usage.cpu_s - previous.cpu_s) / dt,
             rss_kib: usage.rss_kib,
             max_rss_kib: usage.max_rss_kib,
+            stage1: None,
         }
     }
 }

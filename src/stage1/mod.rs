@@ -106,6 +106,21 @@ pub trait TierRecord: Serialize + Default + std::fmt::Debug + Send + Sync + 'sta
     fn summary(&self, window: usize, stride: usize) -> String;
     /// The counters this record holds, for `/metrics`.
     fn counters(&self) -> Vec<Counter>;
+    /// How the tier stands now, for the daemon's periodic stats line (the physics tier: its
+    /// sub-frame cap and how it moved); `None` when there is nothing to say.
+    fn status(&self) -> Option<TierStatus> {
+        None
+    }
+}
+
+/// How a tier stands at one moment (see [`TierRecord::status`]).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct TierStatus {
+    /// In words, for the stats line.
+    pub line: String,
+    /// The tier's level of detail now, where it trades detail for time (the physics tier's
+    /// sub-frame cap), so that costs can be told apart by level.
+    pub level: Option<u32>,
 }
 
 /// A tier's record as [`Stage1Stats`] carries it: read only when asked (a report, a scrape,
@@ -115,6 +130,8 @@ pub trait Record: std::fmt::Debug + Send + Sync {
     fn summary(&self, window: usize, stride: usize) -> String;
     /// See [`TierRecord::counters`].
     fn counters(&self) -> Vec<Counter>;
+    /// See [`TierRecord::status`].
+    fn status(&self) -> Option<TierStatus>;
     /// The record as JSON text, its fields in their declared order.
     fn json(&self) -> Box<RawValue>;
 }
@@ -126,6 +143,10 @@ impl<R: TierRecord> Record for R {
 
     fn counters(&self) -> Vec<Counter> {
         TierRecord::counters(self)
+    }
+
+    fn status(&self) -> Option<TierStatus> {
+        TierRecord::status(self)
     }
 
     fn json(&self) -> Box<RawValue> {
@@ -144,6 +165,10 @@ impl Record for NoRecord {
 
     fn counters(&self) -> Vec<Counter> {
         Vec::new()
+    }
+
+    fn status(&self) -> Option<TierStatus> {
+        None
     }
 
     fn json(&self) -> Box<RawValue> {

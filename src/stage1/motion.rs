@@ -51,7 +51,7 @@ use crate::frame::color::luma_to_gray as gray;
 use crate::parallel::side_by_side;
 
 mod blend;
-use blend::{Blend, Packed, BLEND_CHUNK, PACKED_BYTES_PER_PIXEL};
+use blend::{Blend, Packed, RowScratch, BLEND_CHUNK, PACKED_BYTES_PER_PIXEL};
 
 /// How the pixel model sees the light between two frames.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
@@ -131,8 +131,12 @@ pub struct MotionStats {
     pub frame_pixels: u64,
     /// Times a live run lowered the sub-frame cap to keep up.
     pub cap_lowered: u64,
+    /// Times a live run raised it again, having time to spare.
+    pub cap_raised: u64,
     /// The sub-frame cap now (intervals per frame interval; 1: linear).
     pub cap: u32,
+    /// The configured cap (`max_subframes`), the most a live run raises it to.
+    pub cap_most: u32,
     /// The cap integrated over the frame time stepped (cap times each interval's us), and
     /// that time, us: their ratio is the cap's time-weighted mean.
     pub cap_us: u64,
@@ -158,7 +162,9 @@ impl MotionStats {
         self.flow_pixels += o.flow_pixels;
         self.frame_pixels = o.frame_pixels;
         self.cap_lowered += o.cap_lowered;
+        self.cap_raised += o.cap_raised;
         self.cap = o.cap;
+        self.cap_most = o.cap_most;
         self.cap_us = self.cap_us.saturating_add(o.cap_us);
         self.paced_us = self.paced_us.saturating_add(o.paced_us);
     }
@@ -243,6 +249,7 @@ impl Subframes {
             ready: false,
             stats: MotionStats {
                 cap: max_subframes,
+                cap_most: max_subframes,
                 frame_pixels: u64::from(width) * u64::from(height),
                 ..Default::default()
             },
@@ -356,6 +363,8 @@ impl Subframes {
         if let Some(cap) = governor.spent(seconds, interval_us, subframed, cap, most) {
             if cap < self.cap {
                 self.stats.cap_lowered += 1;
+            } else {
+                self.stats.cap_raised += 1;
             }
             self.cap = cap;
             self.stats.cap = cap;
@@ -535,6 +544,7 @@ impl Subframes {
         out.resize(w * h, 0);
         let tiles_x = w.div_ceil(tile);
         let blend = Blend::new(self, scale0, j as f32 / k as f32);
+        let mut scratch = RowScratch::new();
         for ty in 0..h.div_ceil(tile) {
             let steps = &self.steps[ty * tiles_x..(ty + 1) * tiles_x];
             let moving = |tx: usize| covers(steps[tx], j, k);
@@ -550,7 +560,8 @@ impl Subframes {
                 for y in ty * tile..((ty + 1) * tile).min(h) {
                     for x in (x0..x1).step_by(BLEND_CHUNK) {
                         let xs = x..(x + BLEND_CHUNK).min(x1);
-                        blend.row(y, xs.clone(), &mut out[y * w + xs.start..y * w + xs.end]);
+                        let pixels = &mut out[y * w + xs.start..y * w + xs.end];
+                        blend.row(y, xs.clone(), pixels, &mut scratch);
                     }
                 }
                 tx += run;
@@ -598,7 +609,14 @@ struct Governor {
     wait: u32,
     /// Intervals since the last raise, while it may still be taken back.
     since_raise: Option<u32>,
+    /// Seconds of the run (wall time at its speed) spent with the cap below the configured
+    /// one, without a break; `None` once the warning that says so has been given.
+    below_s: Option<f64>,
 }
+
+/// A live run whose cap stays below the configured one this long (seconds, without a break)
+/// says so once, as a warning: the changes themselves are summarised in the stats line.
+const LONG_BELOW_S: f64 = 60.0;
 
 impl Governor {
     fn new(speed: f64) -> Self {
@@ -609,6 +627,25 @@ impl Governor {
             calm: 0,
             wait: CALM_INTERVALS,
             since_raise: None,
+            below_s: Some(0.0),
+        }
+    }
+
+    /// Counts `frame` seconds at `cap` of `most`; says once when the cap has stayed below
+    /// `most` for `LONG_BELOW_S`.
+    fn watch(&mut self, frame: f64, cap: u32, most: u32) {
+        let Some(below) = &mut self.below_s else {
+            return;
+        };
+        *below = if cap < most { *below + frame } else { 0.0 };
+        if *below >= LONG_BELOW_S {
+            self.below_s = None;
+            tracing::warn!(
+                "the sub-frame cap has stayed below its configured {most} for {LONG_BELOW_S:.0} \
+                 s (now {cap}; 1 is linear interpolation): this machine cannot run the full \
+                 motion model at this frame size and rate in real time (the stats line shows \
+                 the cap; a smaller frame or a lower max_subframes holds steady)"
+            );
         }
     }
 
@@ -623,6 +660,7 @@ impl Governor {
         most: u32,
     ) -> Option<u32> {
         let frame = interval_us as f64 * 1e-6 / self.speed;
+        self.watch(frame, cap, most);
         let budget = LIVE_SHARE * frame;
         if subframed {
             self.smoothed = if self.samples == 0 {
@@ -648,7 +686,7 @@ impl Governor {
             if self.since_raise.take().is_some() {
                 self.wait = (self.wait * 2).min(MAX_CALM_INTERVALS);
             }
-            tracing::warn!(
+            tracing::debug!(
                 "stage 1 takes {:.1} ms of a {:.1} ms frame: sub-frame cap lowered to {lowered} \
                  to keep up (motion = \"flow\"; 1 is linear interpolation; next raise tried \
                  after {} calm frames)",
@@ -667,7 +705,7 @@ impl Governor {
         if calm && cap < most {
             self.calm += 1;
             if self.calm >= self.wait {
-                tracing::info!(
+                tracing::debug!(
                     "stage 1 has time again: sub-frame cap raised to {}",
                     cap + 1
                 );
@@ -1014,8 +1052,9 @@ mod tests {
             m.packed.set((w, h), (&f0, &m.ok0), (&f1, &m.ok1));
             let blend = Blend::new(&m, scale0, tau);
             let mut out = vec![0u16; w];
+            let mut scratch = RowScratch::new();
             for y in 0..h {
-                blend.row(y, 0..w, &mut out);
+                blend.row(y, 0..w, &mut out, &mut scratch);
                 for (x, &got) in out.iter().enumerate() {
                     let i = y * w + x;
                     let ([ax, ay], [bx, by]) = (m.f01[i], m.f10[i]);

@@ -121,6 +121,26 @@ impl Taps {
 /// bottom right.
 type Corners = [[u32; 4]; BLEND_CHUNK];
 
+/// What [`Blend::row`] works in, kept by its caller across rows (arrays on the stack would be
+/// cleared at every call).
+pub(super) struct RowScratch {
+    taps0: Taps,
+    taps1: Taps,
+    c0: Corners,
+    c1: Corners,
+}
+
+impl RowScratch {
+    pub(super) fn new() -> Box<Self> {
+        Box::new(RowScratch {
+            taps0: Taps::new(),
+            taps1: Taps::new(),
+            c0: [[0; 4]; BLEND_CHUNK],
+            c1: [[0; 4]; BLEND_CHUNK],
+        })
+    }
+}
+
 /// Loads the corners of `taps` (`n` of them) from `packed`, whose rows are `stride` words.
 #[inline(always)]
 fn gather(taps: &Taps, n: usize, packed: &[u32], stride: usize, out: &mut Corners) {
@@ -170,14 +190,25 @@ impl<'a> Blend<'a> {
     /// Pixels `xs` of row `y` (at most [`BLEND_CHUNK`]) into `out`: in three passes, so the
     /// arithmetic runs on vectors: where each pixel's flows land, the frames' packed corners
     /// there, and the blend. Each pixel's arithmetic is the same as alone, in the same order.
-    pub(super) fn row(&self, y: usize, xs: std::ops::Range<usize>, out: &mut [u16]) {
+    pub(super) fn row(
+        &self,
+        y: usize,
+        xs: std::ops::Range<usize>,
+        out: &mut [u16],
+        scratch: &mut RowScratch,
+    ) {
         let (w, h) = (self.w, self.h);
         let n = xs.len().min(BLEND_CHUNK).min(out.len());
         let start = y * w + xs.start;
         let (f01, f10) = (&self.f01[start..start + n], &self.f10[start..start + n]);
         let last = ((w - 1) as f32, (h - 1) as f32);
         let stride = w + 1;
-        let (mut taps0, mut taps1) = (Taps::new(), Taps::new());
+        let RowScratch {
+            taps0,
+            taps1,
+            c0,
+            c1,
+        } = scratch;
         for j in 0..n {
             let [ax, ay] = f01[j];
             let [bx, by] = f10[j];
@@ -193,14 +224,12 @@ impl<'a> Blend<'a> {
             taps0.set(j, last, stride as u32, x + to0.0, yf + to0.1);
             taps1.set(j, last, stride as u32, x + to1.0, yf + to1.1);
         }
-        let mut c0: Corners = [[0; 4]; BLEND_CHUNK];
-        let mut c1: Corners = [[0; 4]; BLEND_CHUNK];
-        gather(&taps0, n, self.p0, stride, &mut c0);
-        gather(&taps1, n, self.p1, stride, &mut c1);
+        gather(taps0, n, self.p0, stride, c0);
+        gather(taps1, n, self.p1, stride, c1);
         let (s, tau) = (self.s, self.tau);
         for j in 0..n {
-            let (v0, seen0) = sample(c0[j], &taps0, j);
-            let (v1, seen1) = sample(c1[j], &taps1, j);
+            let (v0, seen0) = sample(c0[j], taps0, j);
+            let (v1, seen1) = sample(c1[j], taps1, j);
             let v0 = v0 * self.scale0;
             // Each neighbour where its flow is trusted; where neither is, the plain blend.
             let (w0, w1) = (if seen0 { s } else { 0.0 }, if seen1 { tau } else { 0.0 });

@@ -1,6 +1,7 @@
 //! The pixel model's state cut into bands of tile rows, each stepped on its own: pixels are
 //! independent and a frame's events are sorted afterwards, so a frame whose work is large is
-//! stepped as two bands on two threads with the events of one (see [`PhysicsSim::advance`]).
+//! stepped band by band on every helper thread with the events of one (see
+//! [`PhysicsSim::advance`]).
 //!
 //! A band takes an interval's passes in order ([`Pass`]: the pixels of some tiles move from
 //! one light to the next, a sub-frame or the frame), row by row across its active tiles, so
@@ -8,7 +9,8 @@
 
 use std::ops::Range;
 
-use super::{FilterRow, PhysicsConfig, PhysicsSim, PhysicsStats, SlowPixel};
+use super::crossings::{Lane, Shared, Slow};
+use super::{FilterRow, PhysicsSim, PhysicsStats, SlowPixel};
 use crate::event::Event;
 
 /// One step of some tiles' pixels: to the light `luma` at `t1` from their state at `t0`.
@@ -38,78 +40,93 @@ pub(super) struct Scratch {
     /// The slow pixels of the tile row being advanced.
     slow: Vec<SlowPixel>,
     /// Scratch of the slow path (see [`super::crossings`]).
-    pub(super) lanes: Vec<super::crossings::Lane>,
+    lanes: Vec<Lane>,
+    /// Scratch of [`Band::row`].
+    row: RowScratch,
 }
 
-/// What every band reads.
-pub(super) struct Shared<'a> {
-    pub cfg: &'a PhysicsConfig,
-    /// `L` and the filter row of every 16-bit luminance value.
-    pub log_lut: &'a [f32],
-    pub filter_rows: &'a [u8],
-    pub width: usize,
-    pub height: usize,
-    pub tile: usize,
-    /// Each pixel's own thresholds, which the threshold noise is drawn around (frame
-    /// indices; empty without threshold noise).
-    pub own_on: &'a [f32],
-    pub own_off: &'a [f32],
-    /// The simulator's seed, which the threshold noise is drawn from.
-    pub seed: u64,
+/// The per-pixel quantities of one tile row's pixels (at most 64) in [`Band::row`].
+#[derive(Debug)]
+struct RowScratch {
+    l1s: [f32; 64],
+    taus: [f32; 64],
+    decays: [f32; 64],
+    amps: [f32; 64],
+    kept: [bool; 64],
+}
+
+impl Default for RowScratch {
+    fn default() -> Self {
+        RowScratch {
+            l1s: [0.0; 64],
+            taus: [0.0; 64],
+            decays: [0.0; 64],
+            amps: [0.0; 64],
+            kept: [false; 64],
+        }
+    }
 }
 
 /// The pixels of the tile rows `rows`: their state (indexed from the band's first pixel),
 /// their tiles' rest flags (from the band's first tile) and counters of their steps.
 pub(super) struct Band<'a> {
-    pub(super) shared: &'a Shared<'a>,
+    shared: &'a Shared<'a>,
     rows: Range<usize>,
     /// Index of the band's first pixel and first tile in the frame.
-    pub(super) base: usize,
+    base: usize,
     first_tile: usize,
-    pub(super) l_in: &'a mut [f32],
-    pub(super) l_p: &'a mut [f32],
-    pub(super) l_ref: &'a mut [f32],
-    pub(super) thr_on: &'a mut [f32],
-    pub(super) thr_off: &'a mut [f32],
+    l_in: &'a mut [f32],
+    l_p: &'a mut [f32],
+    l_ref: &'a mut [f32],
+    thr_on: &'a mut [f32],
+    thr_off: &'a mut [f32],
     /// Each pixel's events so far (empty without threshold noise).
-    pub(super) fired: &'a mut [u32],
-    pub(super) last_event: &'a mut [i64],
+    fired: &'a mut [u32],
+    last_event: &'a mut [i64],
     prev_luma: &'a mut [u16],
     settled: &'a mut [bool],
-    pub(super) scratch: &'a mut Scratch,
-    pub(super) stats: PhysicsStats,
+    scratch: &'a mut Scratch,
+    stats: PhysicsStats,
 }
 
-/// A band's work below this many pixel steps stays on one thread: starting a second costs
-/// more.
+/// A frame's work below this many pixel steps stays on one thread: handing it out costs more.
 const PARALLEL_PIXEL_STEPS: usize = 64 * 1024;
+
+/// The pixel arrays of one band, cut from the frame's.
+type Cut<'a, T> = std::vec::IntoIter<&'a mut [T]>;
+
+/// `data` cut into pieces of `chunk` values (the last one shorter), `bands` of them; an empty
+/// `data` (an array a setting leaves out) gives empty pieces.
+fn cut<T>(data: &mut [T], chunk: usize, bands: usize) -> Cut<'_, T> {
+    let mut pieces: Vec<&mut [T]> = data.chunks_mut(chunk.max(1)).collect();
+    pieces.resize_with(bands, || &mut []);
+    pieces.into_iter()
+}
 
 impl PhysicsSim {
     /// Takes `passes` in order, appending the signal events (unsorted); each pass's `luma`
     /// becomes the previous light of the tiles it moves. The tiles whose light did not change
     /// and whose pixels are at rest are skipped. Where the passes move many pixels, the frame
-    /// is cut into two bands of about equal work, stepped side by side.
+    /// is cut into bands of one tile row, which the helper threads take from one queue
+    /// ([`crate::parallel::each`]); pixels are independent and the events are sorted
+    /// afterwards, so they do not depend on which thread stepped which band.
     pub(super) fn advance(&mut self, passes: &[Pass], out: &mut Vec<Event>) {
         let tile = self.cfg.tile as usize;
         let (w, h) = (self.width as usize, self.height as usize);
         let (tiles_x, rows) = (w.div_ceil(tile), h.div_ceil(tile));
-        // Tiles moved per tile row, over all passes: the work a row may take.
-        let work: Vec<usize> = (0..rows)
-            .map(|ty| {
-                let tiles = ty * tiles_x..(ty + 1) * tiles_x;
-                passes
-                    .iter()
-                    .map(|p| tiles.clone().filter(|&t| p.moves(t)).count())
-                    .sum()
+        // Tiles moved over all passes: the work the frame may take.
+        let total: usize = passes
+            .iter()
+            .map(|p| match p.only {
+                None => tiles_x * rows,
+                Some((mask, value)) => mask.iter().filter(|&&m| m == value).count(),
             })
-            .collect();
-        let total: usize = work.iter().sum();
-        let parallel = total * tile * tile >= PARALLEL_PIXEL_STEPS && rows >= 2;
-        let split = if parallel {
-            crate::parallel::halfway(&work).clamp(1, rows - 1)
-        } else {
-            rows
-        };
+            .sum();
+        let parallel = total * tile * tile >= PARALLEL_PIXEL_STEPS
+            && rows >= 2
+            && crate::parallel::threads() > 1;
+        let band_rows = if parallel { 1 } else { rows };
+        let bands = rows.div_ceil(band_rows);
         let PhysicsSim {
             cfg,
             width,
@@ -144,57 +161,56 @@ impl PhysicsSim {
             own_off,
             seed: *seed,
         };
-        let at = (split * tile).min(h) * w;
-        let (in_a, in_b) = l_in.split_at_mut(at);
-        let (p_a, p_b) = l_p.split_at_mut(at);
-        let (ref_a, ref_b) = l_ref.split_at_mut(at);
-        let (on_a, on_b) = thr_on.split_at_mut(at);
-        let (off_a, off_b) = thr_off.split_at_mut(at);
-        let (last_a, last_b) = last_event.split_at_mut(at);
-        let fired_at = at.min(fired.len());
-        let (fired_a, fired_b) = fired.split_at_mut(fired_at);
-        let (prev_a, prev_b) = prev_luma.split_at_mut(at);
-        let (settled_a, settled_b) = settled.split_at_mut(split * tiles_x);
-        let [scratch_a, scratch_b] = scratch;
-        let mut a = Band {
-            shared: &shared,
-            rows: 0..split,
-            base: 0,
-            first_tile: 0,
-            l_in: in_a,
-            l_p: p_a,
-            l_ref: ref_a,
-            thr_on: on_a,
-            thr_off: off_a,
-            fired: fired_a,
-            last_event: last_a,
-            prev_luma: prev_a,
-            settled: settled_a,
-            scratch: scratch_a,
-            stats: PhysicsStats::default(),
-        };
-        let mut b = Band {
-            shared: &shared,
-            rows: split..rows,
-            base: at,
-            first_tile: split * tiles_x,
-            l_in: in_b,
-            l_p: p_b,
-            l_ref: ref_b,
-            thr_on: on_b,
-            thr_off: off_b,
-            fired: fired_b,
-            last_event: last_b,
-            prev_luma: prev_b,
-            settled: settled_b,
-            scratch: scratch_b,
-            stats: PhysicsStats::default(),
-        };
-        spill.clear();
-        crate::parallel::side_by_side(parallel, || a.run(passes, out), || b.run(passes, spill));
-        stats.add(a.stats);
-        stats.add(b.stats);
-        out.append(spill);
+        scratch.resize_with(bands, Default::default);
+        spill.resize_with(bands, Vec::new);
+        let chunk = band_rows * tile * w;
+        let (mut l_in, mut l_p, mut l_ref) = (
+            cut(l_in, chunk, bands),
+            cut(l_p, chunk, bands),
+            cut(l_ref, chunk, bands),
+        );
+        let (mut thr_on, mut thr_off, mut fired) = (
+            cut(thr_on, chunk, bands),
+            cut(thr_off, chunk, bands),
+            cut(fired, chunk, bands),
+        );
+        let (mut last_event, mut prev_luma) =
+            (cut(last_event, chunk, bands), cut(prev_luma, chunk, bands));
+        let mut settled = cut(settled, band_rows * tiles_x, bands);
+        let mut work: Vec<(Band, &mut Vec<Event>)> = scratch
+            .iter_mut()
+            .zip(spill.iter_mut())
+            .enumerate()
+            .filter_map(|(b, (scratch, spill))| {
+                let first = b * band_rows;
+                spill.clear();
+                let band = Band {
+                    shared: &shared,
+                    rows: first..(first + band_rows).min(rows),
+                    base: first * tile * w,
+                    first_tile: first * tiles_x,
+                    l_in: l_in.next()?,
+                    l_p: l_p.next()?,
+                    l_ref: l_ref.next()?,
+                    thr_on: thr_on.next()?,
+                    thr_off: thr_off.next()?,
+                    fired: fired.next()?,
+                    last_event: last_event.next()?,
+                    prev_luma: prev_luma.next()?,
+                    settled: settled.next()?,
+                    scratch,
+                    stats: PhysicsStats::default(),
+                };
+                Some((band, spill))
+            })
+            .collect();
+        crate::parallel::each(parallel, &mut work, |(band, events)| {
+            band.run(passes, events)
+        });
+        for (band, events) in work {
+            stats.add(band.stats);
+            out.append(events);
+        }
     }
 }
 
@@ -264,7 +280,20 @@ impl Band<'_> {
                 }
             }
             if !slow.is_empty() {
-                self.crossings(&slow, pass.t0, pass.t1, &pass.filter, out);
+                let mut view = Slow {
+                    shared: self.shared,
+                    base: self.base,
+                    l_in: &mut *self.l_in,
+                    l_p: &mut *self.l_p,
+                    l_ref: &mut *self.l_ref,
+                    thr_on: &mut *self.thr_on,
+                    thr_off: &mut *self.thr_off,
+                    fired: &mut *self.fired,
+                    last_event: &mut *self.last_event,
+                    refractory_drops: &mut self.stats.refractory_drops,
+                };
+                let span = (pass.t0, pass.t1);
+                view.crossings(&slow, span, &pass.filter, &mut self.scratch.lanes, out);
             }
         }
         (self.scratch.active, self.scratch.changed, self.scratch.slow) = (active, changed, slow);
@@ -298,17 +327,20 @@ impl Band<'_> {
         // cross one (the slow path); the slow pixels. A tile row has at most 64 pixels
         // (checked by `validate`).
         let n = luma.len().min(64);
-        let mut l1s = [0.0f32; 64];
-        let mut taus = [0.0f32; 64];
-        let mut decays = [0.0f32; 64];
-        let mut amps = [0.0f32; 64];
+        // Kept in the band's scratch: arrays on the stack would be cleared at every call.
+        let RowScratch {
+            l1s,
+            taus,
+            decays,
+            amps,
+            kept,
+        } = &mut self.scratch.row;
         for j in 0..n {
             let v = luma[j];
             l1s[j] = self.shared.log_lut[v as usize];
             let row = pass.filter[self.shared.filter_rows[v as usize] as usize];
             (taus[j], decays[j], amps[j]) = (row.tau, row.decay, row.amp);
         }
-        let mut kept = [false; 64];
         let mut settled = true;
         let (l_in, l_p, l_ref, on, off) = (
             &mut l_in[..n],
@@ -344,11 +376,5 @@ impl Band<'_> {
             }
         }
         settled
-    }
-
-    /// The flicker's phase (radians) at time `t` us.
-    pub(super) fn flicker_phase(&self, t: i64) -> f64 {
-        let period = 1e6 / self.shared.cfg.flicker_hz;
-        std::f64::consts::TAU * (t as f64).rem_euclid(period) / period
     }
 }

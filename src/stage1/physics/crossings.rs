@@ -1,5 +1,5 @@
 //! The slow path of the pixel model: sub-steps with timed crossings, for the pixels of a tile
-//! whose response may reach a threshold in the interval (see [`Band::row`]).
+//! whose response may reach a threshold in the interval (the bands' fast path leaves them here).
 //!
 //! A tile's slow pixels are ordered by their number of sub-steps and stepped [`LANES`] at a
 //! time, side by side, one array per quantity, so the step's arithmetic runs on vectors and a
@@ -8,9 +8,11 @@
 //! arithmetic is exactly what it is alone (the same operations in the same order), and a
 //! frame's events are sorted afterwards, so the events depend neither on the grouping nor on
 //! the order.
+//!
+//! This file reads only the model's shared types ([`super`]); the bands that call it
+//! ([`super::band`]) hand it a view of their state ([`Slow`]).
 
-use super::band::Band;
-use super::{FilterRow, SlowPixel, FLICKER_MAX_SUBSTEPS};
+use super::{FilterRow, PhysicsConfig, SlowPixel, FLICKER_MAX_SUBSTEPS};
 use crate::event::Event;
 use crate::rounding::{ceil_to_u32, round_to_i64};
 
@@ -42,8 +44,11 @@ pub(super) struct Lane {
     u_prev: f64,
     lref: f64,
     last: i64,
-    /// The pixel's events so far (with threshold noise).
+    /// The pixel's events so far, and its own thresholds which the noise is drawn around
+    /// (with threshold noise; read with the rest of its state, in memory order).
     fired: u32,
+    own_on: f64,
+    own_off: f64,
 }
 
 impl Lane {
@@ -213,18 +218,51 @@ impl Group {
     }
 }
 
-impl Band<'_> {
+/// What every band reads.
+pub(super) struct Shared<'a> {
+    pub cfg: &'a PhysicsConfig,
+    /// `L` and the filter row of every 16-bit luminance value.
+    pub log_lut: &'a [f32],
+    pub filter_rows: &'a [u8],
+    pub width: usize,
+    pub height: usize,
+    pub tile: usize,
+    /// Each pixel's own thresholds, which the threshold noise is drawn around (frame
+    /// indices; empty without threshold noise).
+    pub own_on: &'a [f32],
+    pub own_off: &'a [f32],
+    /// The simulator's seed, which the threshold noise is drawn from.
+    pub seed: u64,
+}
+
+/// A band's pixels as the slow path sees them: their state, indexed from the band's first
+/// pixel (`base` in the frame), and the band's count of crossings the refractory period
+/// swallowed.
+pub(super) struct Slow<'a, 'b> {
+    pub shared: &'a Shared<'a>,
+    pub base: usize,
+    pub l_in: &'b mut [f32],
+    pub l_p: &'b mut [f32],
+    pub l_ref: &'b mut [f32],
+    pub thr_on: &'b mut [f32],
+    pub thr_off: &'b mut [f32],
+    /// Each pixel's events so far (empty without threshold noise).
+    pub fired: &'b mut [u32],
+    pub last_event: &'b mut [i64],
+    pub refractory_drops: &'b mut u64,
+}
+
+impl Slow<'_, '_> {
     /// Steps `pixels` (a tile's slow pixels, light at `t1`) from `t0` to `t1` in sub-steps,
-    /// appending their timed threshold crossings to `out` (unsorted).
+    /// appending their timed threshold crossings to `out` (unsorted); `lanes` is scratch.
     pub(super) fn crossings(
         &mut self,
         pixels: &[SlowPixel],
-        t0: i64,
-        t1: i64,
+        (t0, t1): (i64, i64),
         filter: &[FilterRow],
+        lanes: &mut Vec<Lane>,
         out: &mut Vec<Event>,
     ) {
-        let mut lanes = std::mem::take(&mut self.scratch.lanes);
         lanes.clear();
         lanes.extend(pixels.iter().map(|p| Lane {
             x: p.x,
@@ -247,7 +285,12 @@ impl Band<'_> {
                 self.last_event[i] = lane.last;
             }
         }
-        self.scratch.lanes = lanes;
+    }
+
+    /// The flicker's phase (radians) at time `t` us.
+    fn flicker_phase(&self, t: i64) -> f64 {
+        let period = 1e6 / self.shared.cfg.flicker_hz;
+        std::f64::consts::TAU * (t as f64).rem_euclid(period) / period
     }
 
     /// Pixel `i`'s state at `t0` and its constants for the interval to `t1`, where its light
@@ -305,6 +348,16 @@ impl Band<'_> {
             lref: self.l_ref[i] as f64,
             last: self.last_event[i],
             fired: self.fired.get(i).copied().unwrap_or(0),
+            own_on: self
+                .shared
+                .own_on
+                .get(self.base + i)
+                .map_or(0.0, |&v| v as f64),
+            own_off: self
+                .shared
+                .own_off
+                .get(self.base + i)
+                .map_or(0.0, |&v| v as f64),
         }
     }
 
@@ -366,7 +419,7 @@ impl Band<'_> {
             let te = (t0 + round_to_i64(t_start + frac * s.h)).clamp(t0 + 1, t1);
             s.lref = level;
             if ((te - s.last) as f64) < refractory {
-                self.stats.refractory_drops += 1;
+                *self.refractory_drops += 1;
                 continue;
             }
             s.last = te;
@@ -387,11 +440,7 @@ impl Band<'_> {
             return;
         }
         let pixel = self.base + s.i;
-        let own = if polarity {
-            self.shared.own_on[pixel]
-        } else {
-            self.shared.own_off[pixel]
-        } as f64;
+        let own = if polarity { s.own_on } else { s.own_off };
         s.fired = s.fired.wrapping_add(1);
         let key = crate::seed::splitmix(self.shared.seed ^ 0x7E5E_7D0E)
             ^ (pixel as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15)

@@ -149,10 +149,10 @@ pub struct PhysicsSim {
     /// The wall time of the last step, its interval and whether it ran through sub-frames,
     /// for the motion model's cap keeper while the worker had it.
     unspent: Option<(f64, i64, bool)>,
-    /// Scratch of the two bands a frame is stepped in (see [`band`]).
-    scratch: [band::Scratch; 2],
-    /// The second band's events, before they join the first's.
-    spill: Vec<Event>,
+    /// Scratch of the bands a frame is stepped in (see [`band`]).
+    scratch: Vec<band::Scratch>,
+    /// Each band's events, before they join the frame's.
+    spill: Vec<Vec<Event>>,
     stats: PhysicsStats,
 }
 
@@ -330,7 +330,7 @@ impl PhysicsSim {
             look_ahead: false,
             ahead: None,
             unspent: None,
-            scratch: Default::default(),
+            scratch: Vec::new(),
             spill: Vec::new(),
             width,
             height,
@@ -385,8 +385,9 @@ impl PhysicsSim {
     /// [`PhysicsSim::step_next`] finds the next interval's motion on a thread of its own
     /// while it steps the current one (see [`ahead`]): offline, or live after
     /// [`PhysicsSim::pace`] (the sub-frame cap then follows the time the steps take here).
+    /// With one thread (`V2CE_THREADS=1`) everything runs in turn on the caller's.
     pub fn look_ahead(&mut self) {
-        self.look_ahead = self.motion.is_some();
+        self.look_ahead = self.motion.is_some() && crate::parallel::threads() > 1;
     }
 
     /// [`PhysicsSim::look_ahead`] was called and there is a motion model to look ahead with.

@@ -49,6 +49,26 @@ impl crate::stage1::TierRecord for PhysicsStats {
         )
     }
 
+    fn status(&self) -> Option<crate::stage1::TierStatus> {
+        let m = &self.motion;
+        let mean = m.cap_mean()?;
+        let moves = if m.cap_lowered + m.cap_raised == 0 {
+            String::new()
+        } else {
+            format!(
+                ", lowered {} and raised {} times",
+                m.cap_lowered, m.cap_raised
+            )
+        };
+        Some(crate::stage1::TierStatus {
+            line: format!(
+                "sub-frame cap {} of {} (mean {mean:.2}{moves})",
+                m.cap, m.cap_most
+            ),
+            level: Some(m.cap),
+        })
+    }
+
     fn counters(&self) -> Vec<crate::stage1::Counter> {
         let m = &self.motion;
         let mut counters = crate::stage1::Counter::family(
@@ -77,8 +97,9 @@ impl crate::stage1::TierRecord for PhysicsStats {
         ));
         counters.extend(crate::stage1::Counter::family(
             "subframe_cap",
-            "Times a live run lowered the sub-frame cap to keep up with the frames.",
-            &[("lowered", m.cap_lowered)],
+            "Times a live run lowered the sub-frame cap to keep up with the frames, and raised it \
+             again with time to spare.",
+            &[("lowered", m.cap_lowered), ("raised", m.cap_raised)],
         ));
         counters
     }
