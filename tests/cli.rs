@@ -525,3 +525,47 @@ fn reconstruct_writes_frames_that_convert_and_eval_read() {
     );
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// The events do not depend on how many threads step them: a conversion of the fixture's
+/// camera pan (every pixel moving, the pixel bands handed out to the helpers, the flow found
+/// ahead) on one thread, on two, and on more threads than the machine has, byte for byte.
+#[test]
+fn events_do_not_depend_on_the_threads() {
+    let dir = temp_dir("threads");
+    let mut outputs = Vec::new();
+    for threads in ["1", "2", "5"] {
+        let out = dir.join(format!("t{threads}.raw"));
+        let status = v2ce()
+            .env("V2CE_THREADS", threads)
+            .args([
+                "convert",
+                "fixture",
+                "--max-frames",
+                "110",
+                "--max-subframes",
+                "4",
+            ])
+            .arg("-o")
+            .arg(&out)
+            .arg("--force")
+            .output()
+            .unwrap();
+        assert!(status.status.success(), "{status:?}");
+        outputs.push(std::fs::read(&out).unwrap());
+    }
+    // Far more than a header: the pan fires millions of events.
+    assert!(outputs[0].len() > 1_000_000, "{} bytes", outputs[0].len());
+    assert!(outputs[1] == outputs[0], "2 threads differ from 1");
+    assert!(outputs[2] == outputs[0], "5 threads differ from 1");
+    // A value that is not a thread count is refused with a warning, not a crash.
+    let status = v2ce()
+        .env("V2CE_THREADS", "lots")
+        .args(["convert", "fixture", "--max-frames", "3", "-o"])
+        .arg(dir.join("bad.raw"))
+        .arg("--force")
+        .output()
+        .unwrap();
+    assert!(status.status.success(), "{status:?}");
+    let stderr = String::from_utf8_lossy(&status.stderr);
+    assert!(stderr.contains("V2CE_THREADS"), "{stderr}");
+}

@@ -743,22 +743,43 @@ fn consistent(
         .enumerate()
     {
         for span in region.row_spans(row, w) {
-            for col in span {
-                let [fx, fy] = line[col];
-                let (x, y) = (col as f32 + fx, row as f32 + fy);
-                let [bx, by] = backward[nearest(w, h, x, y)];
-                let (sx, sy) = (fx + bx, fy + by);
-                oks[col] = sx * sx + sy * sy < 0.01 * (fx * fx + fy * fy + bx * bx + by * by) + 0.5;
+            // A chunk of pixels at a time, in three passes so that the arithmetic runs on
+            // vectors: where each vector lands, the backward vectors there, the test. The
+            // same operations per pixel as one at a time.
+            let mut at = [0usize; CONSISTENT_CHUNK];
+            let mut back = [[0f32; 2]; CONSISTENT_CHUNK];
+            for start in span.clone().step_by(CONSISTENT_CHUNK) {
+                let end = (start + CONSISTENT_CHUNK).min(span.end);
+                let n = end - start;
+                let fwd = &line[start..end];
+                for (j, [fx, fy]) in fwd.iter().enumerate() {
+                    let (x, y) = ((start + j) as f32 + fx, row as f32 + fy);
+                    at[j] = nearest(w, h, x, y);
+                }
+                for (b, &i) in back[..n].iter_mut().zip(&at[..n]) {
+                    *b = backward[i];
+                }
+                for ((ok, [fx, fy]), [bx, by]) in
+                    oks[start..end].iter_mut().zip(fwd).zip(&back[..n])
+                {
+                    let (sx, sy) = (fx + bx, fy + by);
+                    *ok = sx * sx + sy * sy < 0.01 * (fx * fx + fy * fy + bx * bx + by * by) + 0.5;
+                }
             }
         }
     }
 }
 
+/// Pixels [`consistent`] checks together.
+const CONSISTENT_CHUNK: usize = 64;
+
 /// The index of the pixel nearest `(x, y)`, clamped to the frame.
 fn nearest(w: usize, h: usize, x: f32, y: f32) -> usize {
-    // `as usize` truncates and saturates (NaN and negatives to 0): `+ 0.5` rounds.
-    let xi = ((x + 0.5) as usize).min(w - 1);
-    let yi = ((y + 0.5) as usize).min(h - 1);
+    // The conversion truncates and saturates (NaN and negatives to 0): `+ 0.5` rounds.
+    // Through `i32`, whose conversion runs on vectors (a frame side fits in it).
+    let xi = ((x + 0.5) as i32).max(0) as usize;
+    let yi = ((y + 0.5) as i32).max(0) as usize;
+    let (xi, yi) = (xi.min(w - 1), yi.min(h - 1));
     yi * w + xi
 }
 
@@ -1109,6 +1130,40 @@ mod tests {
         assert_eq!(sub.stats().cap, 4);
         sub.spent(0.001, 33_333, false);
         assert_eq!(sub.stats().cap, 5);
+    }
+
+    /// The cap's changes are counted both ways for the stats line; the warning that the cap
+    /// stays low is given once, after `LONG_BELOW_S` below the configured cap without a
+    /// break (time at the configured cap starts the count over).
+    #[test]
+    fn a_cap_held_low_is_said_once() {
+        let mut sub = Subframes::new(DIS_FAST, 1.0, 8, W, H).unwrap();
+        sub.pace(1.0);
+        for _ in 0..SETTLE_INTERVALS {
+            sub.spent(0.050, 33_333, true);
+        }
+        assert_eq!((sub.stats().cap, sub.stats().cap_lowered), (4, 1));
+        let governor = |sub: &Subframes| sub.live.clone().unwrap();
+        let below = |sub: &Subframes| governor(sub).below_s;
+        // Slow enough to stay at 4 (no raise), not so slow as to lower it again.
+        let hold = |sub: &mut Subframes, n: usize| {
+            for _ in 0..n {
+                sub.spent(0.016, 33_333, false);
+            }
+        };
+        hold(&mut sub, 100);
+        let held = below(&sub).unwrap();
+        assert!((3.0..4.0).contains(&held), "{held} s below");
+        // Back at the configured cap: the count starts over.
+        sub.cap = 8;
+        hold(&mut sub, 1);
+        assert_eq!(below(&sub), Some(0.0));
+        sub.cap = 4;
+        hold(&mut sub, (LONG_BELOW_S * 30.0) as usize + 2);
+        assert_eq!(below(&sub), None, "warned");
+        assert_eq!(sub.stats().cap, 4);
+        assert_eq!(sub.stats().cap_raised, 0);
+        assert_eq!(sub.stats().cap_most, 8);
     }
 
     /// A live run that cannot keep up lowers the cap, by the overshoot (by one at least, to

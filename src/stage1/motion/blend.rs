@@ -105,11 +105,13 @@ impl Taps {
     /// takes them.
     #[inline(always)]
     fn set(&mut self, j: usize, last: (f32, f32), stride: u32, x: f32, y: f32) {
-        let nx = (x + 0.5).max(0.0).min(last.0) as u32;
-        let ny = (y + 0.5).max(0.0).min(last.1) as u32;
+        // Through `i32`, whose saturating conversion runs on vectors (the values are in
+        // `0..=8192` or NaN, which both conversions take to 0: the same results).
+        let nx = (x + 0.5).max(0.0).min(last.0) as i32 as u32;
+        let ny = (y + 0.5).max(0.0).min(last.1) as i32 as u32;
         let x = x.clamp(0.0, last.0);
         let y = y.clamp(0.0, last.1);
-        let (xi, yi) = (x as u32, y as u32);
+        let (xi, yi) = (x as i32 as u32, y as i32 as u32);
         self.fx[j] = x - xi as f32;
         self.fy[j] = y - yi as f32;
         self.at[j] = yi * stride + xi;
@@ -237,7 +239,8 @@ impl<'a> Blend<'a> {
             let (a, b) = if neither { (s, tau) } else { (w0, w1) };
             let v = (a * v0 + b * v1) / (a + b);
             // Non-negative: `+ 0.5` and truncation round it (no libm call in the loop).
-            out[j] = (v + 0.5).clamp(0.0, 65535.0) as u16;
+            // Through `i32` (on vectors), as for the taps: the same values.
+            out[j] = (v + 0.5).clamp(0.0, 65535.0) as i32 as u16;
         }
     }
 }
