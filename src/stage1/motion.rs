@@ -678,10 +678,22 @@ impl Governor {
                 self.wait = CALM_INTERVALS;
             }
         }
-        if self.samples >= SETTLE_INTERVALS && self.smoothed > budget && cap > 1 {
+        // An interval through sub-frames that took longer than the frame interval itself,
+        // with the smoothed time over the budget too (not a lone hiccup), puts Stage 1
+        // behind at once (the frames queue, then are shed): lowered without waiting for the
+        // smoothed time to settle. Not on the first interval since the start or the last
+        // change: the run's first pays for starting its threads, and the one after a change
+        // had its motion found ahead under the cap before.
+        let behind = subframed && seconds > frame && self.smoothed > budget && self.samples >= 2;
+        if ((self.samples >= SETTLE_INTERVALS && self.smoothed > budget) || behind) && cap > 1 {
             // Time falls at most in proportion to the cap (a part of it, the frame's own
             // step, does not depend on it): lower by the overshoot, then again if needed.
-            let fits = (f64::from(cap) * budget / self.smoothed).floor() as u32;
+            let spent = if behind {
+                self.smoothed.max(seconds)
+            } else {
+                self.smoothed
+            };
+            let fits = (f64::from(cap) * budget / spent).floor() as u32;
             let lowered = fits.clamp((cap / 2).max(1), cap - 1);
             if self.since_raise.take().is_some() {
                 self.wait = (self.wait * 2).min(MAX_CALM_INTERVALS);
@@ -690,7 +702,7 @@ impl Governor {
                 "stage 1 takes {:.1} ms of a {:.1} ms frame: sub-frame cap lowered to {lowered} \
                  to keep up (motion = \"flow\"; 1 is linear interpolation; next raise tried \
                  after {} calm frames)",
-                self.smoothed * 1e3,
+                spent * 1e3,
                 frame * 1e3,
                 self.wait
             );
@@ -1119,10 +1131,11 @@ mod tests {
             sub.spent(0.050, 33_333, false);
         }
         assert_eq!(sub.stats().cap, 8);
-        // The same time through sub-frames lowers it.
-        for _ in 0..SETTLE_INTERVALS {
-            sub.spent(0.050, 33_333, true);
-        }
+        // The same time through sub-frames lowers it: at the second interval, since 50 ms
+        // is more than the frame itself (Stage 1 falls behind).
+        sub.spent(0.050, 33_333, true);
+        assert_eq!(sub.stats().cap, 8);
+        sub.spent(0.050, 33_333, true);
         assert_eq!(sub.stats().cap, 4);
         for _ in 0..CALM_INTERVALS - 1 {
             sub.spent(0.001, 33_333, false);
@@ -1185,13 +1198,15 @@ mod tests {
             caps.push(sub.stats().cap);
         }
         assert_eq!(caps, [8, 8, 7, 7, 7, 6]);
-        // Far over it, to half at most per step.
+        // Far over it, longer than the frame itself: to half at most per step, without
+        // waiting for the smoothed time, but never on the first interval after a change
+        // (its motion was found ahead under the cap before).
         caps.clear();
-        for _ in 0..2 * SETTLE_INTERVALS {
+        for _ in 0..4 {
             sub.spent(0.100, 33_333, true);
             caps.push(sub.stats().cap);
         }
-        assert_eq!(caps, [6, 6, 3, 3, 3, 1]);
+        assert_eq!(caps, [6, 3, 3, 1]);
         assert_eq!(sub.stats().cap_lowered, 4);
         let calm = |sub: &mut Subframes, n: u32| {
             for _ in 0..n {
@@ -1200,8 +1215,9 @@ mod tests {
         };
         calm(&mut sub, CALM_INTERVALS);
         assert_eq!(sub.stats().cap, 2);
-        // Too slow at 2: back to 1, and the next raise waits twice as long.
-        for _ in 0..SETTLE_INTERVALS {
+        // Too slow at 2 (slower than the frame: at its second interval): back to 1, and the
+        // next raise waits twice as long.
+        for _ in 0..2 {
             sub.spent(0.040, 33_333, true);
         }
         assert_eq!(sub.stats().cap, 1);

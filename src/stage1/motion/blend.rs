@@ -107,14 +107,14 @@ impl Taps {
     fn set(&mut self, j: usize, last: (f32, f32), stride: u32, x: f32, y: f32) {
         // Through `i32`, whose saturating conversion runs on vectors (the values are in
         // `0..=8192` or NaN, which both conversions take to 0: the same results).
-        let nx = (x + 0.5).max(0.0).min(last.0) as i32 as u32;
-        let ny = (y + 0.5).max(0.0).min(last.1) as i32 as u32;
+        let nx = (x + 0.5).max(0.0).min(last.0) as i32;
+        let ny = (y + 0.5).max(0.0).min(last.1) as i32;
         let x = x.clamp(0.0, last.0);
         let y = y.clamp(0.0, last.1);
-        let (xi, yi) = (x as i32 as u32, y as i32 as u32);
+        let (xi, yi) = (x as i32, y as i32);
         self.fx[j] = x - xi as f32;
         self.fy[j] = y - yi as f32;
-        self.at[j] = yi * stride + xi;
+        self.at[j] = (yi * stride as i32 + xi) as u32;
         (self.right[j], self.below[j]) = (nx > xi, ny > yi);
     }
 }
