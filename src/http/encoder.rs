@@ -368,6 +368,12 @@ mod tests {
         drop(pages);
         assert!(encoder.subscribe(99_000, Wants::Page).unwrap().is_some());
         encoder.stop();
+        // Joined; the kernel lists a thread that has ended until it has released it, a moment
+        // after the join returns (the test failed 1 run in 5 on a busy machine): wait for that.
+        let stopped = Instant::now();
+        while threads_named(THREAD_NAME) > 0 && stopped.elapsed() < Duration::from_secs(5) {
+            std::thread::sleep(Duration::from_millis(10));
+        }
         assert_eq!(threads_named(THREAD_NAME), 0);
     }
 }
