@@ -192,7 +192,7 @@ pub fn run(config: &Config, stop: &AtomicBool) -> Result<Report> {
     let l = &s.latency_total;
     let summary = format!(
         "stopped: {}; {} frames in, {} dropped, {} events out in {:.1} s; latency p50 {:.1} ms \
-         p99 {:.1} ms max {:.1} ms; cpu {:.1} s; peak rss {} MiB",
+         p99 {:.1} ms max {:.1} ms; cpu {:.1} s; peak rss {} MiB{}",
         report.end.describe(),
         s.frames_in,
         s.frames_dropped,
@@ -202,7 +202,13 @@ pub fn run(config: &Config, stop: &AtomicBool) -> Result<Report> {
         l.p99_ms,
         l.max_ms,
         s.cpu_s,
-        s.max_rss_kib / 1024
+        s.max_rss_kib / 1024,
+        report
+            .stage1
+            .record
+            .status()
+            .map(|t| format!("; stage 1: {}", t.line))
+            .unwrap_or_default()
     );
     if report.end.is_clean() {
         tracing::info!("{summary}");
