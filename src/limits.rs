@@ -17,6 +17,9 @@ pub const MAX_SECONDS: f64 = 1e8;
 /// The most frame intervals one evaluation builds (160 MB of intervals).
 pub const MAX_INTERVALS: u64 = 10_000_000;
 
+/// Most threads `V2CE_THREADS` may ask for (each is a helper thread with its own stack).
+pub const MAX_THREADS: usize = 256;
+
 /// Checks a frame or sensor size of `what`: both sides from 1 to [`MAX_SIDE`].
 pub fn frame_size(what: &'static str, width: u32, height: u32) -> Result<()> {
     if width == 0 || height == 0 || width > MAX_SIDE || height > MAX_SIDE {

@@ -59,7 +59,7 @@ pub fn each<T: Send>(parallel: bool, items: &mut [T], work: impl Fn(&mut T) + Sy
 }
 
 /// How many threads work on a stage's split work: `V2CE_THREADS` where set to a number from 1
-/// to [`MAX_THREADS`], else the machine's cores.
+/// to [`MAX_THREADS`] (bounded in [`crate::limits`]), else the machine's cores.
 pub fn threads() -> usize {
     static THREADS: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
     *THREADS.get_or_init(|| {
@@ -81,8 +81,7 @@ pub fn threads() -> usize {
     })
 }
 
-/// The most helper threads `V2CE_THREADS` may ask for.
-pub const MAX_THREADS: usize = 256;
+pub use crate::limits::MAX_THREADS;
 
 /// The helper threads, started once: none with one thread (or where the system gives no
 /// thread).

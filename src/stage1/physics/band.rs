@@ -161,8 +161,12 @@ impl PhysicsSim {
             own_off,
             seed: *seed,
         };
-        scratch.resize_with(bands, Default::default);
-        spill.resize_with(bands, Vec::new);
+        // Grown, never shrunk: a frame stepped in one band keeps the others' buffers for the
+        // next frame stepped in many (only the first `bands` are used).
+        if scratch.len() < bands {
+            scratch.resize_with(bands, Default::default);
+            spill.resize_with(bands, Vec::new);
+        }
         let chunk = band_rows * tile * w;
         let (mut l_in, mut l_p, mut l_ref) = (
             cut(l_in, chunk, bands),
@@ -180,6 +184,7 @@ impl PhysicsSim {
         let mut work: Vec<(Band, &mut Vec<Event>)> = scratch
             .iter_mut()
             .zip(spill.iter_mut())
+            .take(bands)
             .enumerate()
             .filter_map(|(b, (scratch, spill))| {
                 let first = b * band_rows;
