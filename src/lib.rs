@@ -39,6 +39,7 @@ pub mod render;
 pub mod repair;
 pub(crate) mod rounding;
 pub mod seed;
+pub mod simd;
 pub mod sink;
 pub(crate) mod source;
 pub mod stage1;

@@ -597,6 +597,22 @@ fn consistent(
     region: &Region,
     ok: &mut Vec<bool>,
 ) {
+    crate::simd::run(
+        #[inline(always)]
+        || consistent_here(forward, backward, w, h, region, ok),
+    )
+}
+
+/// [`consistent`] in the caller's instruction set.
+#[inline(always)]
+fn consistent_here(
+    forward: &[[f32; 2]],
+    backward: &[[f32; 2]],
+    w: usize,
+    h: usize,
+    region: &Region,
+    ok: &mut Vec<bool>,
+) {
     ok.clear();
     ok.resize(w * h, true);
     for (row, (line, oks)) in forward
@@ -615,7 +631,8 @@ fn consistent(
                 let n = end - start;
                 let fwd = &line[start..end];
                 for (j, [fx, fy]) in fwd.iter().enumerate() {
-                    let (x, y) = ((start + j) as f32 + fx, row as f32 + fy);
+                    // Through `i32`: an unsigned conversion has no vector form on SSE2.
+                    let (x, y) = ((start + j) as i32 as f32 + fx, row as i32 as f32 + fy);
                     at[j] = nearest(w, h, x, y);
                 }
                 for (b, &i) in back[..n].iter_mut().zip(&at[..n]) {
@@ -635,22 +652,35 @@ fn consistent(
 /// Pixels [`consistent`] checks together.
 const CONSISTENT_CHUNK: usize = 64;
 
-/// The index of the pixel nearest `(x, y)`, clamped to the frame.
+/// `v` clamped into `0..=last` (`last` a frame's last column or row, below 8192), NaN to 0.
+#[inline(always)]
+fn inside(v: f32, last: f32) -> f32 {
+    // `max` takes NaN to 0.
+    v.max(0.0).min(last)
+}
+
+/// The whole part of [`inside`]'s value: its floor, as it is not negative. The conversion
+/// needs no saturation, so it runs on vectors.
+#[inline(always)]
+fn whole(inside: f32) -> i32 {
+    debug_assert!((0.0..8192.0).contains(&inside));
+    // SAFETY: a value of `inside` is finite and in `0..8192`, which `i32` holds.
+    unsafe { inside.to_int_unchecked::<i32>() }
+}
+
+/// The index of the pixel nearest `(x, y)`, clamped to the frame (NaN to 0).
+#[inline(always)]
 fn nearest(w: usize, h: usize, x: f32, y: f32) -> usize {
-    // The conversion truncates and saturates (NaN and negatives to 0): `+ 0.5` rounds.
-    // Through `i32`, whose conversion runs on vectors (a frame side fits in it).
-    let xi = ((x + 0.5) as i32).max(0) as usize;
-    let yi = ((y + 0.5) as i32).max(0) as usize;
-    let (xi, yi) = (xi.min(w - 1), yi.min(h - 1));
+    let xi = whole(inside(x + 0.5, (w - 1) as f32)) as usize;
+    let yi = whole(inside(y + 0.5, (h - 1) as f32)) as usize;
     yi * w + xi
 }
 
-/// Bilinear sample of `img` at `(x, y)`, the border repeated outside.
+/// Bilinear sample of `img` at `(x, y)`, the border repeated outside (NaN to 0).
 fn sample<T: Copy + Into<f32>>(img: &[T], w: usize, h: usize, x: f32, y: f32) -> f32 {
-    let x = x.clamp(0.0, (w - 1) as f32);
-    let y = y.clamp(0.0, (h - 1) as f32);
-    // Non-negative after the clamp: truncation is the floor.
-    let (xi, yi) = (x as usize, y as usize);
+    let x = inside(x, (w - 1) as f32);
+    let y = inside(y, (h - 1) as f32);
+    let (xi, yi) = (whole(x) as usize, whole(y) as usize);
     let (fx, fy) = (x - xi as f32, y - yi as f32);
     let (xj, yj) = ((xi + 1).min(w - 1), (yi + 1).min(h - 1));
     let at = |x: usize, y: usize| -> f32 { img[y * w + x].into() };
@@ -921,6 +951,12 @@ mod tests {
         let flow = |rng: &mut rand_xoshiro::Xoshiro256PlusPlus| -> Vec<[f32; 2]> {
             (0..w * h)
                 .map(|_| {
+                    // A few flows that are not numbers or infinite: their positions are
+                    // taken to the frame's edge (NaN to 0), the same in both.
+                    if rng.gen_bool(0.02) {
+                        let odd = [f32::NAN, f32::INFINITY, f32::NEG_INFINITY, 1e30];
+                        return [odd[rng.gen_range(0..4)], odd[rng.gen_range(0..4)]];
+                    }
                     let reach = if rng.gen_bool(0.1) { 60.0 } else { 3.0 };
                     [rng.gen_range(-reach..reach), rng.gen_range(-reach..reach)]
                 })

@@ -8,7 +8,7 @@
 //! sample are two pairs of neighbouring words and the nearest pixel is one of them. The
 //! positions and the blend run on vectors; only the two pairs of loads per frame are scalar.
 
-use super::Subframes;
+use super::{inside, whole, Subframes};
 
 /// Pixels of a sub-frame row blended together.
 pub(super) const BLEND_CHUNK: usize = 64;
@@ -99,19 +99,14 @@ impl Taps {
     }
 
     /// The taps of position `(x, y)` for pixel `j`, in a frame whose last column and row
-    /// are `last` and whose packed rows are `stride` words. In 32 bits so that they run on
-    /// vectors; the same values as [`super::sample`]'s: clamped into the frame first (a frame
-    /// is at most 8192 wide, exact in `f32`), NaN and negatives to 0 as a saturating cast
-    /// takes them.
+    /// are `last` and whose packed rows are `stride` words: the same values as
+    /// [`super::sample`] and [`super::nearest`] find, in 32 bits so that they run on vectors.
     #[inline(always)]
     fn set(&mut self, j: usize, last: (f32, f32), stride: u32, x: f32, y: f32) {
-        // Through `i32`, whose saturating conversion runs on vectors (the values are in
-        // `0..=8192` or NaN, which both conversions take to 0: the same results).
-        let nx = (x + 0.5).max(0.0).min(last.0) as i32;
-        let ny = (y + 0.5).max(0.0).min(last.1) as i32;
-        let x = x.clamp(0.0, last.0);
-        let y = y.clamp(0.0, last.1);
-        let (xi, yi) = (x as i32, y as i32);
+        let nx = whole(inside(x + 0.5, last.0));
+        let ny = whole(inside(y + 0.5, last.1));
+        let (x, y) = (inside(x, last.0), inside(y, last.1));
+        let (xi, yi) = (whole(x), whole(y));
         self.fx[j] = x - xi as f32;
         self.fy[j] = y - yi as f32;
         self.at[j] = (yi * stride as i32 + xi) as u32;
@@ -199,6 +194,21 @@ impl<'a> Blend<'a> {
         out: &mut [u16],
         scratch: &mut RowScratch,
     ) {
+        crate::simd::run(
+            #[inline(always)]
+            || self.row_here(y, xs, out, scratch),
+        )
+    }
+
+    /// [`Blend::row`] in the caller's instruction set.
+    #[inline(always)]
+    fn row_here(
+        &self,
+        y: usize,
+        xs: std::ops::Range<usize>,
+        out: &mut [u16],
+        scratch: &mut RowScratch,
+    ) {
         let (w, h) = (self.w, self.h);
         let n = xs.len().min(BLEND_CHUNK).min(out.len());
         let start = y * w + xs.start;
@@ -222,7 +232,8 @@ impl<'a> Blend<'a> {
                 self.to1.0 * ax - self.to1.1 * bx,
                 self.to1.0 * ay - self.to1.1 * by,
             );
-            let (x, yf) = ((xs.start + j) as f32, y as f32);
+            // Through `i32`: an unsigned conversion has no vector form on SSE2.
+            let (x, yf) = ((xs.start + j) as i32 as f32, y as i32 as f32);
             taps0.set(j, last, stride as u32, x + to0.0, yf + to0.1);
             taps1.set(j, last, stride as u32, x + to1.0, yf + to1.1);
         }

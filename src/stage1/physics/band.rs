@@ -316,6 +316,21 @@ impl Band<'_> {
         pass: &Pass,
         slow: &mut Vec<SlowPixel>,
     ) -> bool {
+        crate::simd::run(
+            #[inline(always)]
+            || self.row_here(y, range, pass, slow),
+        )
+    }
+
+    /// [`Band::row`] in the caller's instruction set.
+    #[inline(always)]
+    fn row_here(
+        &mut self,
+        y: usize,
+        range: Range<usize>,
+        pass: &Pass,
+        slow: &mut Vec<SlowPixel>,
+    ) -> bool {
         let inv_dt = 1.0 / (pass.t1 - pass.t0) as f32;
         let x0 = range.start - y * self.shared.width;
         let luma = &pass.luma[range.clone()];
