@@ -29,6 +29,7 @@ pub mod limits;
 pub(crate) mod listen;
 pub mod metrics;
 pub mod model;
+pub mod output;
 pub(crate) mod parallel;
 pub(crate) mod pipeline;
 pub(crate) mod plot;

@@ -101,9 +101,15 @@ pub fn convert(args: ConvertArgs) -> Result<()> {
         config.stage2.seed = s;
     }
     args.tier.apply(&mut config)?;
-    check_output(&args.output, args.force)?;
+    let inputs: Vec<&std::path::Path> = [Some(&args.input), args.config.as_ref()]
+        .into_iter()
+        .chain([args.preset_file.as_ref(), args.tier.model.as_ref()])
+        .flatten()
+        .map(|p| p.as_path())
+        .collect();
+    crate::output::check(&args.output, &inputs, args.force)?;
     if let Some(v) = &args.write_voxels {
-        check_output(v, args.force)?;
+        crate::output::check(v, &inputs, args.force)?;
     }
     let job = crate::convert::FileJob {
         input: args.input.clone(),

@@ -4,7 +4,6 @@ use std::path::PathBuf;
 
 use clap::{Args, Subcommand};
 
-use super::*;
 use crate::error::{Error, Result};
 use crate::limits::parse_size;
 
@@ -225,7 +224,12 @@ pub fn dataset_recording(args: DatasetRecordingArgs) -> Result<()> {
 
 /// Runs `v2ce calibrate`: fits a preset and writes its file.
 pub fn calibrate(args: CalibrateArgs) -> Result<()> {
-    check_output(&args.output, args.force)?;
+    let inputs: Vec<&std::path::Path> = [Some(&args.real), args.frames.as_ref()]
+        .into_iter()
+        .flatten()
+        .map(|p| p.as_path())
+        .collect();
+    crate::output::check(&args.output, &inputs, args.force)?;
     let preset = crate::stage1::Preset::from_name(&args.preset)?;
     let mut overrides = crate::stage1::PhysicsOverrides::default();
     args.motion.apply(&mut overrides);
@@ -256,9 +260,7 @@ pub fn calibrate(args: CalibrateArgs) -> Result<()> {
     let fit = crate::calibrate::calibrate(&rec, &base, args.seed)?;
     let text =
         crate::calibrate::preset_file(&fit, preset.name(), &args.real.display().to_string())?;
-    let tmp = args.output.with_extension("toml.partial");
-    std::fs::write(&tmp, text).map_err(|e| Error::io(&tmp, e))?;
-    std::fs::rename(&tmp, &args.output).map_err(|e| Error::io(&args.output, e))?;
+    crate::output::write_whole(&args.output, text.as_bytes())?;
     if args.json {
         let text =
             serde_json::to_string(&fit).map_err(|e| Error::invalid("report", e.to_string()))?;

@@ -43,6 +43,9 @@ pub struct RealismArgs {
     /// spectrum), real and simulated side by side, as a PNG here.
     #[arg(long, value_name = "P.png")]
     pub(crate) plot: Option<PathBuf>,
+    /// Overwrite an existing --plot file.
+    #[arg(long)]
+    pub(crate) force: bool,
 }
 
 /// How `v2ce eval` simulates the events it scores when it is given none.
@@ -57,6 +60,18 @@ pub struct SimulateArgs {
     /// Without --sim: the seed of mismatch and noise.
     #[arg(long, default_value_t = 0, conflicts_with = "sim")]
     pub(crate) seed: u64,
+}
+
+impl CompareArgs {
+    /// The files these flags read (an output must be none of them).
+    fn inputs(&self) -> Vec<&std::path::Path> {
+        [Some(&self.real), self.sim.as_ref(), self.frames.as_ref()]
+            .into_iter()
+            .chain([self.simulate.preset_file.as_ref()])
+            .flatten()
+            .map(|p| p.as_path())
+            .collect()
+    }
 }
 
 /// The real and the simulated stream `v2ce eval stage1` and `v2ce eval realism` compare.
@@ -158,6 +173,9 @@ pub struct Stage2Args {
     /// Write the sampled events as CSV (t_us,x,y,on).
     #[arg(long, value_name = "OUT.csv")]
     pub(crate) write_events: Option<PathBuf>,
+    /// Overwrite an existing --write-events file.
+    #[arg(long)]
+    pub(crate) force: bool,
     /// Print the scores as one JSON object.
     #[arg(long)]
     pub(crate) json: bool,
@@ -210,6 +228,9 @@ pub fn eval_stage1(args: Stage1Args) -> Result<()> {
 /// Runs `v2ce eval realism`.
 pub fn eval_realism(args: RealismArgs) -> Result<()> {
     let streams = &args.streams;
+    if let Some(path) = &args.plot {
+        crate::output::check(path, &streams.inputs(), args.force)?;
+    }
     let (real, intervals, sim) = streams.load()?;
     let (Some(first), Some(last)) = (intervals.first(), intervals.last()) else {
         return Err(Error::invalid(
@@ -229,7 +250,9 @@ pub fn eval_realism(args: RealismArgs) -> Result<()> {
     };
     let report = crate::metrics::realism::compare(real, sim, size, window, floors)?;
     if let Some(path) = &args.plot {
-        crate::metrics::realism_plot::plot(&report, path)?;
+        crate::output::write_via(path, |partial| {
+            crate::metrics::realism_plot::plot(&report, partial)
+        })?;
     }
     let text = if args.json {
         serde_json::to_string(&report).map_err(|e| Error::invalid("report", e.to_string()))?
@@ -259,14 +282,25 @@ pub fn eval_stage2(args: Stage2Args) -> Result<()> {
     if let Some(b) = args.bins {
         config.stage2.bins = b;
     }
+    if let Some(path) = &args.write_events {
+        let inputs: Vec<&std::path::Path> = [&args.events, &args.frames, &args.config]
+            .into_iter()
+            .flatten()
+            .map(|p| p.as_path())
+            .collect();
+        crate::output::check(path, &inputs, args.force)?;
+    }
     let (recording, intervals) = load_stage2_input(&args)?;
     let sampler = config.stage2.sampler.build(config.stage2.seed);
+    // Written under the partial name, renamed when whole.
     let mut writer = match &args.write_events {
         Some(path) => {
-            let file = std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
+            let out = crate::format::PartialOutput::new(path);
+            let partial = out.writing().to_path_buf();
+            let file = std::fs::File::create(&partial).map_err(|e| Error::io(&partial, e))?;
             let mut w = std::io::BufWriter::new(file);
-            writeln!(w, "{}", csv::HEADER).map_err(|e| Error::io(path, e))?;
-            Some((path.clone(), w))
+            writeln!(w, "{}", csv::HEADER).map_err(|e| Error::io(&partial, e))?;
+            Some((partial, w, out))
         }
         None => None,
     };
@@ -276,14 +310,18 @@ pub fn eval_stage2(args: Stage2Args) -> Result<()> {
         config.stage2.bins,
         sampler.as_ref(),
         |events| {
-            if let Some((path, w)) = writer.as_mut() {
+            if let Some((path, w, _)) = writer.as_mut() {
                 csv::write_rows(w, events).map_err(|err| Error::io(path.clone(), err))?;
             }
             Ok(())
         },
     )?;
-    if let Some((path, mut w)) = writer {
-        w.flush().map_err(|e| Error::io(path, e))?;
+    if let Some((path, w, out)) = writer {
+        let file = w
+            .into_inner()
+            .map_err(|e| Error::io(&path, e.into_error()))?;
+        file.sync_all().map_err(|e| Error::io(&path, e))?;
+        out.commit()?;
     }
     if report.repaired.any() {
         eprintln!(

@@ -134,7 +134,7 @@ pub struct RenderArgs {
 /// Runs `v2ce repair`.
 pub fn repair(args: RepairArgs) -> Result<()> {
     if let Some(out) = &args.out {
-        check_output(out, args.force)?;
+        crate::output::check(out, &[&args.file], args.force)?;
     }
     let report = crate::repair::repair(&args.file, args.out.as_deref())?;
     eprintln!("v2ce: {report}");
@@ -143,7 +143,7 @@ pub fn repair(args: RepairArgs) -> Result<()> {
 
 /// Runs `v2ce transcode`.
 pub fn transcode(args: TranscodeArgs) -> Result<()> {
-    check_output(&args.output, args.force)?;
+    crate::output::check(&args.output, &[&args.input], args.force)?;
     let fmt = args.encoding.format_for(&args.output)?;
     let size = args.size.as_deref().map(parse_size).transpose()?;
     let started = std::time::Instant::now();
@@ -179,7 +179,7 @@ pub fn info(args: InfoArgs) -> Result<()> {
 
 /// Runs `v2ce render`.
 pub fn render(args: RenderArgs) -> Result<()> {
-    check_output(&args.output, args.force)?;
+    crate::output::check(&args.output, &[&args.input], args.force)?;
     let options = crate::render::RenderOptions {
         fps: args.fps,
         decay_us: args.decay_ms.map(|ms| ms * 1e3),

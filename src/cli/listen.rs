@@ -5,7 +5,6 @@ use std::path::PathBuf;
 
 use clap::Args;
 
-use super::*;
 use crate::error::{Error, Result};
 use crate::limits::parse_size;
 
@@ -58,7 +57,7 @@ pub struct ListenArgs {
 /// Runs `v2ce listen`.
 pub fn listen(args: ListenArgs) -> Result<()> {
     if let Some(out) = &args.out {
-        check_output(out, args.force)?;
+        crate::output::check(out, &[], args.force)?;
     }
     use crate::listen::{Listen, ListenOptions};
     let seconds = |what: &'static str, v: f64| crate::limits::seconds(what, v, true);

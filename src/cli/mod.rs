@@ -24,7 +24,7 @@ use self::listen::ListenArgs;
 use self::model::ModelCommand;
 use self::run::{BenchArgs, BenchCommand, RunArgs};
 use crate::config::Config;
-use crate::error::{Error, Result};
+use crate::error::Result;
 use crate::format::{self};
 
 /// Writes each flag that was given over the setting it overrides:
@@ -280,17 +280,6 @@ impl EncodingArgs {
         let compression = format::Compression::from_name(&self.compression)?;
         format::Format::for_output(path, self.evt.parse::<u8>().ok(), compression)
     }
-}
-
-/// Refuses to replace an existing file unless `force` (the `--force` flag).
-pub fn check_output(path: &Path, force: bool) -> Result<()> {
-    if path.exists() && !force {
-        return Err(Error::invalid(
-            "output",
-            format!("{} exists; add --force to overwrite it", path.display()),
-        ));
-    }
-    Ok(())
 }
 
 /// `frames/total frames (pct), N events, rate, ETA` (without a total: frames, events, rate).

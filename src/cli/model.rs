@@ -81,7 +81,7 @@ pub struct ModelRunArgs {
 
 /// Runs `v2ce model import`.
 pub fn model_import(args: ModelImportArgs) -> Result<()> {
-    check_output(&args.output, args.force)?;
+    crate::output::check(&args.output, &[&args.checkpoint], args.force)?;
     let options = crate::model::ImportOptions {
         spectral_norm: args.spectral_norm,
         fold_batch_norm: !args.keep_bn,
@@ -140,7 +140,11 @@ pub fn model_bench(args: ModelBenchArgs) -> Result<()> {
 
 /// Runs `v2ce model run`.
 pub fn model_run(args: ModelRunArgs) -> Result<()> {
-    check_output(&args.output_npy, args.force)?;
+    crate::output::check(
+        &args.output_npy,
+        &[&args.model, &args.input_npy],
+        args.force,
+    )?;
     let options = args.runtime.options();
     let report = crate::stage1::learned::raw::run_npy(
         &args.model,

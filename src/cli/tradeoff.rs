@@ -49,6 +49,9 @@ pub struct TradeoffArgs {
     /// Also draw TF1 against speed with the Pareto front, as a PNG here.
     #[arg(long, value_name = "OUT.png")]
     pub(crate) plot: Option<PathBuf>,
+    /// Overwrite an existing --plot file.
+    #[arg(long)]
+    pub(crate) force: bool,
     /// Make the synthetic sequences at these frame rates, one group each (e.g. 15,30,60; the
     /// ground truth stays at 1 kHz or more) instead of the dataset's own rates.
     #[arg(long, value_delimiter = ',')]
@@ -61,6 +64,15 @@ pub struct TradeoffArgs {
 /// Runs `v2ce bench tradeoff`.
 pub fn tradeoff(args: TradeoffArgs) -> Result<()> {
     use crate::tradeoff::{self, Scene};
+    if let Some(path) = &args.plot {
+        let inputs: Vec<&std::path::Path> = [&args.real, &args.frames]
+            .into_iter()
+            .flatten()
+            .chain(&args.model)
+            .map(|p| p.as_path())
+            .collect();
+        crate::output::check(path, &inputs, args.force)?;
+    }
     let mut groups: Vec<Vec<Scene>> = Vec::new();
     if let Some(real) = &args.real {
         groups.push(vec![Scene::recording(
@@ -125,7 +137,7 @@ pub fn tradeoff(args: TradeoffArgs) -> Result<()> {
         Ok(())
     })?;
     if let Some(path) = &args.plot {
-        tradeoff::plot(&rows, path)?;
+        crate::output::write_via(path, |partial| tradeoff::plot(&rows, partial))?;
         eprintln!("v2ce: plot written to {}", path.display());
     }
     if !args.json {
