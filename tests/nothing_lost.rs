@@ -148,3 +148,79 @@ fn an_output_never_replaces_an_input_or_a_device() {
     assert!(names.iter().all(|n| !n.contains("partial")), "{names:?}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A small tmpfs mounted for a test, unmounted when dropped; `None` (with the reason) where
+/// this machine does not let the test mount one (not root, or no mount privilege).
+struct SmallDisk(PathBuf);
+
+impl SmallDisk {
+    fn mount(name: &str, size: &str) -> std::result::Result<SmallDisk, String> {
+        let dir = temp_dir(name);
+        let out = Command::new("mount")
+            .args(["-t", "tmpfs", "-o", &format!("size={size}"), "tmpfs"])
+            .arg(&dir)
+            .output()
+            .map_err(|e| format!("mount: {e}"))?;
+        if !out.status.success() {
+            return Err(format!(
+                "mount -t tmpfs: {}",
+                String::from_utf8_lossy(&out.stderr).trim()
+            ));
+        }
+        Ok(SmallDisk(dir))
+    }
+}
+
+impl Drop for SmallDisk {
+    fn drop(&mut self) {
+        let _ = Command::new("umount").arg(&self.0).status();
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// The red team's full disk: a file output of `run` that fills a 2 MiB tmpfs while the UDP
+/// output goes on. The file holds exactly the events the closing line reports (our decoder
+/// reads it back: no hole of zero bytes where the failed write was cut back, which CSV
+/// refused and the binary formats decoded as events), and the run exits 1 naming the output.
+#[test]
+fn a_full_disk_under_a_running_daemon_leaves_what_was_reported() {
+    let disk = match SmallDisk::mount("tmpfs", "2m") {
+        Ok(d) => d,
+        Err(why) => {
+            println!("SKIPPED: a full disk needs a tmpfs this test can mount ({why})");
+            return;
+        }
+    };
+    for out in ["f.csv", "f.raw", "f.aedat4"] {
+        let path = disk.0.join(out);
+        let done = v2ce()
+            .args(["run", "--source", "fixture", "--max-frames", "200"])
+            .args(["--udp", "127.0.0.1:9", "--queue-policy", "block"])
+            .args(["--replay-speed", "4", "--out"])
+            .arg(&path)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&done.stderr);
+        assert_eq!(done.status.code(), Some(1), "{out}: {err}");
+        assert!(err.contains("output(s) failed"), "{out}: {err}");
+        let line = err
+            .lines()
+            .find(|l| l.contains(&format!("file {}", path.display())) && l.contains("events sent"))
+            .unwrap_or_else(|| panic!("{out}: no closing line for the file: {err}"));
+        let sent: u64 = line
+            .split("): ")
+            .nth(1)
+            .and_then(|rest| rest.split_whitespace().next())
+            .and_then(|n| n.parse().ok())
+            .unwrap_or_else(|| panic!("{out}: no count in {line}"));
+        assert!(sent > 0, "{line}");
+        let back = v2ce::format::read_events(&path)
+            .unwrap_or_else(|e| panic!("{out} does not read back: {e}"));
+        assert_eq!(back.events.len() as u64, sent, "{out}: {line}");
+        if out.ends_with(".csv") {
+            let bytes = std::fs::read(&path).unwrap();
+            assert!(!bytes.contains(&0), "{out} holds zero bytes");
+        }
+        std::fs::remove_file(&path).unwrap();
+    }
+}

@@ -217,10 +217,25 @@ pub fn run(args: RunArgs) -> Result<()> {
             serde_json::to_string(&report).map_err(|e| Error::invalid("report", e.to_string()))?;
         println!("{text}");
     }
-    if report.end.is_clean() {
+    if !report.end.is_clean() {
+        return Err(Error::Run(report.end.describe()));
+    }
+    // The daemon went on with its other outputs; the run still failed to write one.
+    let failed: Vec<&str> = report
+        .stats
+        .sinks
+        .iter()
+        .filter(|s| s.failed.is_some())
+        .map(|s| s.sink.as_str())
+        .collect();
+    if failed.is_empty() {
         Ok(())
     } else {
-        Err(Error::Run(report.end.describe()))
+        Err(Error::Run(format!(
+            "{} output(s) failed (the others went on; see above): {}",
+            failed.len(),
+            failed.join(", ")
+        )))
     }
 }
 

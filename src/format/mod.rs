@@ -302,8 +302,72 @@ pub fn create(
     width: u16,
     height: u16,
 ) -> Result<Box<dyn EventEncoder + Send>> {
-    let buffered = || -> Result<BufWriter<std::fs::File>> {
+    create_sealable(path, format, width, height).map(|(encoder, _)| encoder)
+}
+
+/// The file an encoder writes through: its owner can [`Seal`] it, after which every write and
+/// seek fails. A file cut back after a failed write (a full disk) is sealed first, so the
+/// encoder's buffered writer, whose position lies past the cut, can never write there later
+/// (its flush on drop would leave a hole of zero bytes that readers take for events).
+pub struct SealableFile {
+    file: std::fs::File,
+    sealed: Seal,
+}
+
+/// Seals a [`SealableFile`] (shared with it).
+#[derive(Debug, Clone, Default)]
+pub struct Seal(std::sync::Arc<std::sync::atomic::AtomicBool>);
+
+impl Seal {
+    /// From now on the file takes no write and no seek.
+    pub fn seal(&self) {
+        self.0.store(true, std::sync::atomic::Ordering::SeqCst);
+    }
+
+    fn check(&self) -> std::io::Result<()> {
+        if self.0.load(std::sync::atomic::Ordering::SeqCst) {
+            return Err(std::io::Error::other(
+                "the file was closed after a failed write",
+            ));
+        }
+        Ok(())
+    }
+}
+
+impl std::io::Write for SealableFile {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.sealed.check()?;
+        self.file.write(buf)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.sealed.check()?;
+        self.file.flush()
+    }
+}
+
+impl std::io::Seek for SealableFile {
+    fn seek(&mut self, pos: std::io::SeekFrom) -> std::io::Result<u64> {
+        self.sealed.check()?;
+        self.file.seek(pos)
+    }
+}
+
+/// [`create`], with the [`Seal`] of the file the encoder writes (HDF5, whose library opens
+/// the file itself, has none that takes effect: it is whole only at its end anyway).
+pub fn create_sealable(
+    path: &Path,
+    format: Format,
+    width: u16,
+    height: u16,
+) -> Result<(Box<dyn EventEncoder + Send>, Seal)> {
+    let seal = Seal::default();
+    let buffered = || -> Result<BufWriter<SealableFile>> {
         let file = std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
+        let file = SealableFile {
+            file,
+            sealed: seal.clone(),
+        };
         Ok(BufWriter::with_capacity(1 << 16, file))
     };
     let wrap = |e: Error| Error::format(path, e.to_string());
@@ -318,10 +382,11 @@ pub fn create(
         // The HDF5 library creates the file itself.
         Format::Hdf5 => Box::new(hdf5::Encoder::create(path, width, height).map_err(wrap)?),
     };
-    Ok(Box::new(FileEncoder {
+    let encoder = Box::new(FileEncoder {
         path: path.to_path_buf(),
         inner,
-    }))
+    });
+    Ok((encoder, seal))
 }
 
 /// An output written under a temporary name (`out.csv` is written as `out.partial.csv`, so

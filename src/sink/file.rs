@@ -106,6 +106,8 @@ pub struct FileSink {
     path: PathBuf,
     format: Format,
     encoder: Box<dyn EventEncoder + Send>,
+    /// Closes the encoder's file to every write once a write failed (see [`format::Seal`]).
+    seal: format::Seal,
     stats: SinkStats,
     /// Flush at most this long after the last flush (the daemon's outputs; `convert` writes
     /// whole packets only, so its files do not depend on timing).
@@ -130,10 +132,12 @@ pub struct FileSink {
 impl FileSink {
     /// Creates `path` in `format` for a `width x height` sensor.
     pub fn create(path: &Path, format: Format, width: u16, height: u16) -> Result<Self> {
+        let (encoder, seal) = format::create_sealable(path, format, width, height)?;
         Ok(FileSink {
             path: path.to_path_buf(),
             format,
-            encoder: format::create(path, format, width, height)?,
+            encoder,
+            seal,
             stats: SinkStats::default(),
             flush_every: None,
             last_flush: None,
@@ -178,6 +182,8 @@ impl FileSink {
     /// After a failed write: the file cut back to its length at the last good flush (see
     /// `good_len`), where it can be.
     fn cut_back(&mut self) {
+        // First no more writes through the encoder, whose position is past the cut.
+        self.seal.seal();
         if let (Some(file), Some(len)) = (&self.sync, self.good_len) {
             if let Err(e) = file.set_len(len) {
                 tracing::warn!(
