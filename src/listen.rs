@@ -88,6 +88,10 @@ pub struct ListenReport {
     /// written), which an event file cannot hold (datagrams reordered on the way, a sender
     /// restarted, a 32-bit time wrapped).
     pub out_of_order: u64,
+    /// Datagrams or packets refused whole when writing to a file, their events neither counted
+    /// nor written: one holding a pixel off the sensor (`--size`, or the stream's header),
+    /// which the file cannot hold.
+    pub off_sensor: u64,
     /// Seconds from the first arrival to the last.
     pub seconds: f64,
     /// Events per second over that span.
@@ -173,6 +177,7 @@ impl Offsets {
 enum Refusal {
     OutOfRange,
     OutOfOrder,
+    OffSensor,
 }
 
 struct Tally {
@@ -183,6 +188,8 @@ struct Tally {
     offsets: Offsets,
     per_ms: (u64, u64),
     out: Option<Box<dyn EventEncoder + Send>>,
+    /// The sensor size of `out`'s file, whose pixels it can hold.
+    size: (u16, u16),
     /// The time of the last event written to `out`.
     written_t: Option<i64>,
     /// The latest arrival time given to untimestamped events, us: arrival stamps mapped from
@@ -191,8 +198,9 @@ struct Tally {
 }
 
 impl Tally {
-    fn new(out: Option<Box<dyn EventEncoder + Send>>) -> Self {
+    fn new(out: Option<Box<dyn EventEncoder + Send>>, size: (u16, u16)) -> Self {
         Tally {
+            size,
             started: None,
             last: None,
             report: ListenReport::default(),
@@ -253,6 +261,12 @@ impl Tally {
             }
         }
         if self.out.is_some() {
+            let (w, h) = self.size;
+            if let Some(e) = events.iter().find(|e| e.x >= w || e.y >= h) {
+                let why = format!("({}, {}) on a {w} x {h} sensor", e.x, e.y);
+                self.refuse(Refusal::OffSensor, &why);
+                return Ok(());
+            }
             let mut last = self.written_t.unwrap_or(i64::MIN);
             for e in events.iter() {
                 if e.t < last {
@@ -288,6 +302,7 @@ impl Tally {
         let (count, what) = match kind {
             Refusal::OutOfRange => (&mut self.report.out_of_range, "a time out of range"),
             Refusal::OutOfOrder => (&mut self.report.out_of_order, "times that go back"),
+            Refusal::OffSensor => (&mut self.report.off_sensor, "a pixel off the sensor"),
         };
         *count = count.saturating_add(1);
         if *count == 1 {
@@ -356,7 +371,7 @@ pub fn listen(
             let realtime = crate::realtime::is_realtime();
             let local = socket.local_addr().map_err(err)?;
             ready(&local.to_string());
-            let mut tally = Tally::new(out(options.size)?);
+            let mut tally = Tally::new(out(options.size)?, options.size);
             tally.report.realtime = realtime;
             let timestamped = *format != UdpFormat::Spif;
             let mut buf = vec![0u8; 65_536];
@@ -364,10 +379,13 @@ pub fn listen(
             while !done(&tally) {
                 let (n, at) = match recv_stamped(&socket, &mut buf) {
                     Ok(got) => got,
+                    // A signal interrupts the wait (a stop then ends the loop).
                     Err(e)
                         if matches!(
                             e.kind(),
-                            std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                            std::io::ErrorKind::WouldBlock
+                                | std::io::ErrorKind::TimedOut
+                                | std::io::ErrorKind::Interrupted
                         ) =>
                     {
                         continue
@@ -409,7 +427,7 @@ pub fn listen(
                 };
                 let size = decoder.size().unwrap_or(options.size);
                 ready(&peer.to_string());
-                let mut tally = Tally::new(out(size)?);
+                let mut tally = Tally::new(out(size)?, size);
                 let mut events = Vec::new();
                 while !done(&tally) {
                     events.clear();
@@ -430,7 +448,7 @@ pub fn listen(
                 .and_then(|s| s.size)
                 .unwrap_or(options.size);
             ready(&peer.to_string());
-            let mut tally = Tally::new(out(size)?);
+            let mut tally = Tally::new(out(size)?, size);
             while !done(&tally) {
                 match reader.next_item()? {
                     None => break,
@@ -458,11 +476,20 @@ impl Read for Patient<'_> {
     fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
         loop {
             match self.inner.read(buf) {
+                // A wait cut short by the timeout or a signal: on, or the end where the
+                // caller stops (its files are finished and its report printed).
                 Err(e)
                     if matches!(
                         e.kind(),
-                        std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
-                    ) && !(self.give_up)() => {}
+                        std::io::ErrorKind::WouldBlock
+                            | std::io::ErrorKind::TimedOut
+                            | std::io::ErrorKind::Interrupted
+                    ) =>
+                {
+                    if (self.give_up)() {
+                        return Ok(0);
+                    }
+                }
                 other => return other,
             }
         }
@@ -566,7 +593,7 @@ mod tests {
     #[test]
     fn times_out_of_range_refuse_their_datagram() {
         use crate::time::MAX_ABS_US;
-        let mut tally = Tally::new(None);
+        let mut tally = Tally::new(None, (8, 8));
         let now = Instant::now();
         for bad in [i64::MIN, i64::MAX, MAX_ABS_US + 1, -MAX_ABS_US - 1] {
             tally.arrive(now, 26);
@@ -592,7 +619,7 @@ mod tests {
         assert_eq!(spread.max_ms, (2 * MAX_ABS_US) as f64 / 1000.0);
         // Plain spif: whatever the words hold, events get their arrival time, which never
         // goes back (a stamp 4 ms early keeps the latest).
-        let mut tally = Tally::new(None);
+        let mut tally = Tally::new(None, (8, 8));
         tally.arrive(now, 4);
         let mut first = at(&[i64::MIN]);
         tally
@@ -615,7 +642,7 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join("got.csv");
         let out = format::create(&path, format::Format::Csv, 8, 8).unwrap();
-        let mut tally = Tally::new(Some(out));
+        let mut tally = Tally::new(Some(out), (8, 8));
         let now = Instant::now();
         for ts in [&[1, 2][..], &[0], &[3, 2], &[2, 4], &[i64::MIN], &[5]] {
             tally.arrive(now, 13 * ts.len());

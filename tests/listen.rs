@@ -380,3 +380,70 @@ fn listen_gets_every_event_of_the_default_daemon_at_both_sizes() {
         }
     }
 }
+
+/// A stop by signal is a clean stop for `listen`, SIGHUP included: an interrupted wait for the
+/// next datagram ends the loop, the file is finished (every format, those whole only at their
+/// end too) and holds the events the report counts, and the report is printed with exit 0.
+/// A datagram with a pixel off the sensor is refused, counted, and the rest are written.
+#[test]
+fn a_signal_finishes_listens_file_and_report() {
+    let _one_at_a_time = one_at_a_time();
+    let dir = common::temp_dir("listen-signals");
+    for (signal, name) in [
+        (libc::SIGINT, "got.aedat4"),
+        (libc::SIGTERM, "got.npz"),
+        (libc::SIGHUP, "got.h5"),
+    ] {
+        let got = dir.join(name);
+        let mut child = v2ce()
+            .args([
+                "listen",
+                "--udp",
+                "127.0.0.1:0",
+                "--format",
+                "t64_x16_y16_on8",
+            ])
+            .args(["--size", "640x480", "--idle", "600", "--json", "--out"])
+            .arg(&got)
+            .stdout(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let mut out = BufReader::new(child.stdout.take().unwrap());
+        let mut line = String::new();
+        out.read_line(&mut line).unwrap();
+        let at = line
+            .trim()
+            .strip_prefix("listening on ")
+            .unwrap()
+            .to_string();
+        // One datagram off the sensor first: refused, counted, and listen goes on.
+        let socket = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+        let mut off = Vec::new();
+        off.extend_from_slice(&1i64.to_le_bytes());
+        off.extend_from_slice(&700u16.to_le_bytes());
+        off.extend_from_slice(&2u16.to_le_bytes());
+        off.push(1);
+        socket.send_to(&off, &at).unwrap();
+        let run = v2ce()
+            .arg("run")
+            .arg("--source")
+            .arg(frames())
+            .args(["--udp", &at, "--udp-format", "t64_x16_y16_on8"])
+            .args(["--queue-policy", "block", "--replay-speed", "4"])
+            .output()
+            .unwrap();
+        assert!(
+            run.status.success(),
+            "{}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+        // Let the last datagrams land, then stop it.
+        std::thread::sleep(std::time::Duration::from_millis(300));
+        unsafe { libc::kill(child.id() as i32, signal) };
+        let report = finish_listen(child, out);
+        let events = report["events"].as_u64().unwrap();
+        assert!(events > 100, "{name}: {report}");
+        assert_eq!(report["off_sensor"], 1, "{name}: {report}");
+        assert_eq!(read(&got).len() as u64, events, "{name}");
+    }
+}

@@ -99,13 +99,14 @@ pub fn listen(args: ListenArgs) -> Result<()> {
     } else {
         println!(
             "{} events in {} messages ({} ragged, {} refused for times out of range, {} for \
-             times going back) over {:.2} s: {:.0} events/s; largest gap {:.1} ms; at most {} \
-             messages in one ms{}",
+             times going back, {} for pixels off the sensor) over {:.2} s: {:.0} events/s; \
+             largest gap {:.1} ms; at most {} messages in one ms{}",
             report.events,
             report.messages,
             report.ragged,
             report.out_of_range,
             report.out_of_order,
+            report.off_sensor,
             report.seconds,
             report.events_per_s,
             report.largest_gap_ms,

@@ -15,13 +15,14 @@ use crate::pipeline::stats::{Latency, ProcessUsage, Snapshot};
 use crate::pipeline::{self, End, Options, Report, Stages};
 use crate::sink::{Sink, SinkContext};
 
-/// Raises the returned flag on the first SIGINT or SIGTERM (the pipeline then flushes and
-/// stops); a second one exits at once with status 130.
+/// Raises the returned flag on the first SIGINT, SIGTERM or SIGHUP (the pipeline then flushes
+/// and stops: a hang-up, which a closing terminal or a lost SSH session sends, is a clean stop,
+/// its files finished and its report printed); a second one exits at once with status 130.
 pub fn stop_on_signals() -> Result<Arc<AtomicBool>> {
-    use signal_hook::consts::{SIGINT, SIGTERM};
+    use signal_hook::consts::{SIGHUP, SIGINT, SIGTERM};
     let flag = Arc::new(AtomicBool::new(false));
     let err = |e: std::io::Error| Error::invalid("signal handler", e.to_string());
-    for sig in [SIGINT, SIGTERM] {
+    for sig in [SIGINT, SIGTERM, SIGHUP] {
         // Order matters: the conditional exit sees the flag from an earlier signal only.
         signal_hook::flag::register_conditional_shutdown(sig, 130, flag.clone()).map_err(err)?;
         signal_hook::flag::register(sig, flag.clone()).map_err(err)?;
