@@ -224,3 +224,45 @@ fn a_full_disk_under_a_running_daemon_leaves_what_was_reported() {
         std::fs::remove_file(&path).unwrap();
     }
 }
+
+/// A pacing UDP output (`udp_rate = 1`, a datagram a second for a frame's thousands) stops
+/// waiting when the run reaches its `duration`: the run ends (it ran past 180 s before), the
+/// datagrams it never sent counted as dropped. A hang check, far above the few seconds it takes.
+#[test]
+fn a_pacing_output_honours_the_duration() {
+    let dir = temp_dir("pacing");
+    let config = dir.join("rate.toml");
+    std::fs::write(
+        &config,
+        "[run]\nsource = \"fixture\"\nudp = \"127.0.0.1:9\"\nudp_rate = 1\nduration = 2\n",
+    )
+    .unwrap();
+    let mut child = v2ce()
+        .args(["run", "--config"])
+        .arg(&config)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let started = std::time::Instant::now();
+    let status = loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            break status;
+        }
+        if started.elapsed() > std::time::Duration::from_secs(90) {
+            let _ = child.kill();
+            panic!("the paced run did not end 88 s after its duration");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    };
+    let mut err = String::new();
+    std::io::Read::read_to_string(&mut child.stderr.take().unwrap(), &mut err).unwrap();
+    assert!(status.success(), "{err}");
+    assert!(err.contains("reached the time limit"), "{err}");
+    let line = err
+        .lines()
+        .find(|l| l.contains("udp 127.0.0.1:9") && l.contains("events sent"))
+        .unwrap_or("");
+    assert!(line.contains("dropped"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -241,6 +241,9 @@ impl Weight for Arc<Batch> {
 struct Ctx<'a> {
     stop: &'a AtomicBool,
     halt: AtomicBool,
+    /// Raised when the run stops early (a signal, `duration`, a failure): the sinks that wait
+    /// stop waiting ([`Sink::stop_waiting_on`]).
+    hurry: Arc<AtomicBool>,
     failure: Mutex<Option<String>>,
     counters: Arc<Counters>,
 }
@@ -295,6 +298,7 @@ pub fn run(
     let ctx = Ctx {
         stop,
         halt: AtomicBool::new(false),
+        hurry: Arc::new(AtomicBool::new(false)),
         failure: Mutex::new(None),
         counters: counters.clone(),
     };
@@ -338,7 +342,13 @@ pub fn run(
         let ctx = &ctx;
         let capture = spawn_named(scope, "v2ce-capture".into(), {
             let times = &times;
-            move || capture_stage(source, size, cap_tx, options, ctx, times)
+            move || {
+                let end = capture_stage(source, size, cap_tx, options, ctx, times);
+                if matches!(end, End::Stopped | End::Duration) || ctx.stopping() {
+                    ctx.hurry.store(true, Ordering::Relaxed);
+                }
+                end
+            }
         })?;
         handles.push(spawn_named(scope, "v2ce-sequencer".into(), move || {
             sequencer_stage(cap_rx, seq_tx, ctx)
@@ -781,6 +791,7 @@ fn sink_stage(
 ) {
     // Events handed to this sink. After a failure every one not sent is counted as dropped
     // (the failed batch and all drained after it), so the report does not say "0 dropped".
+    sink.stop_waiting_on(ctx.hurry.clone());
     let mut handed = 0u64;
     let mut failed: Option<String> = None;
     let after_failure = |sink: &dyn Sink, handed: u64| {

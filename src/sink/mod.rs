@@ -160,4 +160,9 @@ pub trait Sink: Send {
     fn counts_latency(&self) -> bool {
         true
     }
+
+    /// The flag the run raises when it stops early (a signal, `duration`): a sink that waits
+    /// (a pacing limit) stops waiting then, dropping and counting what it has not sent, so the
+    /// run ends within its stop budget. Sinks that never wait ignore it.
+    fn stop_waiting_on(&mut self, _flag: std::sync::Arc<std::sync::atomic::AtomicBool>) {}
 }

@@ -236,6 +236,8 @@ pub(crate) fn set_socket_buffer(socket: &UdpSocket, option: libc::c_int, bytes: 
 
 /// Sends events as UDP datagrams.
 pub struct UdpSink {
+    /// Raised when the run stops early: pacing stops waiting ([`Sink::stop_waiting_on`]).
+    hurry: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>,
     config: UdpSinkConfig,
     socket: UdpSocket,
     target: SocketAddr,
@@ -334,6 +336,7 @@ impl UdpSink {
             woke: None,
             previous_due: None,
             catchup: None,
+            hurry: None,
             config: config.clone(),
             socket,
             target,
@@ -348,7 +351,11 @@ impl UdpSink {
         for e in chunk {
             self.config.format.encode(e, &mut self.buf);
         }
-        self.pace();
+        if !self.pace() {
+            self.stats.messages_dropped += 1;
+            self.stats.events_dropped += chunk.len() as u64;
+            return;
+        }
         match self.socket.send(&self.buf) {
             Ok(_) => {
                 self.stats.messages_sent += 1;
@@ -390,21 +397,40 @@ impl UdpSink {
         self.queued.flush(&self.socket, &mut self.stats);
     }
 
-    fn pace(&mut self) {
+    /// Waits for the next datagram's slot under a pacing limit; `false` where the run stopped
+    /// early meanwhile ([`Sink::stop_waiting_on`]): the datagram is not sent.
+    fn pace(&mut self) -> bool {
+        let hurry = || {
+            self.hurry
+                .as_ref()
+                .is_some_and(|h| h.load(std::sync::atomic::Ordering::Relaxed))
+        };
         if let Some(interval) = self.interval {
             let now = Instant::now();
             if self.next_slot > now {
-                std::thread::sleep(self.next_slot - now);
+                // In slices, so a stop is seen within one.
+                while Instant::now() < self.next_slot {
+                    if hurry() {
+                        return false;
+                    }
+                    let left = self.next_slot.saturating_duration_since(Instant::now());
+                    std::thread::sleep(left.min(Duration::from_millis(20)));
+                }
             } else if now - self.next_slot > interval * 64 {
                 // Idle for a while: allow a burst of up to 64 datagrams, no more.
                 self.next_slot = now - interval * 64;
             }
             self.next_slot += interval;
         }
+        !hurry() || self.interval.is_none()
     }
 }
 
 impl Sink for UdpSink {
+    fn stop_waiting_on(&mut self, flag: std::sync::Arc<std::sync::atomic::AtomicBool>) {
+        self.hurry = Some(flag);
+    }
+
     fn describe(&self) -> String {
         let when = match &self.clock {
             Some((clock, _)) => format!(
