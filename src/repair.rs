@@ -83,6 +83,19 @@ pub fn repair(path: &Path, output: Option<&Path>) -> Result<Report> {
     })?;
     let journal_path = journal::path_for(path);
     if matches!(format, Format::Npz | Format::Hdf5) {
+        // A whole file first: a journal beside it is another run's (a finished writer removes
+        // its own), and writing the file from it would replace every event the file holds.
+        if let Ok(events) = count(path) {
+            if journal_path.exists() {
+                tracing::warn!(
+                    "{} is whole; the journal {} beside it is not this file's (a finished \
+                     writer removes its own) and was not used",
+                    path.display(),
+                    journal_path.display()
+                );
+            }
+            return whole(path, output, events);
+        }
         if journal_path.exists() {
             return from_journal(&journal_path, target, format);
         }
@@ -213,10 +226,12 @@ fn whole_prefix(path: &Path, format: Format) -> Result<u64> {
             Ok(header.bytes + body / word * word)
         }
         Format::Csv => {
-            // After the last newline.
+            // After the last newline, unless what follows it is a whole line (a file whose
+            // writer left out the last newline).
             let mut file = open()?;
             let mut end = len;
             let mut buf = vec![0u8; 1 << 16];
+            let mut cut = 0;
             while end > 0 {
                 let start = end.saturating_sub(buf.len() as u64);
                 let chunk = &mut buf[..(end - start) as usize];
@@ -224,14 +239,44 @@ fn whole_prefix(path: &Path, format: Format) -> Result<u64> {
                     .and_then(|_| file.read_exact(chunk))
                     .map_err(|e| Error::io(path, e))?;
                 if let Some(i) = chunk.iter().rposition(|&b| b == b'\n') {
-                    return Ok(start + i as u64 + 1);
+                    cut = start + i as u64 + 1;
+                    break;
                 }
                 end = start;
             }
-            Ok(0)
+            if cut < len && csv_tail_is_whole(path, cut)? {
+                return Ok(len);
+            }
+            Ok(cut)
         }
         Format::Npz | Format::Hdf5 => Ok(len),
     }
+}
+
+/// Whether the CSV file `path`'s text after byte `from` (its last line, without a newline)
+/// is a whole event in the file's columns. Reads the first two lines and the tail, each
+/// bounded by the reader's longest line.
+fn csv_tail_is_whole(path: &Path, from: u64) -> Result<bool> {
+    use std::io::BufRead;
+    const LINE: u64 = 4096;
+    let mut file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let len = file.metadata().map_err(|e| Error::io(path, e))?.len();
+    if len - from > LINE {
+        return Ok(false);
+    }
+    let mut tail = Vec::new();
+    file.seek(SeekFrom::Start(from))
+        .and_then(|_| file.read_to_end(&mut tail))
+        .map_err(|e| Error::io(path, e))?;
+    file.seek(SeekFrom::Start(0))
+        .map_err(|e| Error::io(path, e))?;
+    let mut lines = std::io::BufReader::new(file.take(2 * LINE)).lines();
+    let first = lines.next().and_then(|l| l.ok()).unwrap_or_default();
+    let data = lines.next().and_then(|l| l.ok()).unwrap_or_default();
+    let (Ok(tail), true) = (std::str::from_utf8(&tail), from > 0) else {
+        return Ok(false);
+    };
+    Ok(format::csv::is_whole_last_line(&first, &data, tail))
 }
 
 /// Copies the first `n` bytes of `from` to `to`.
@@ -295,11 +340,16 @@ mod tests {
             let streaming = !matches!(fmt, Format::Npz | Format::Hdf5);
             if streaming {
                 // Cut inside the last unit (the EVT 3.0 file 3 bytes in: 1 byte into a 2-byte
-                // word, which a 4-byte word would not tell apart).
+                // word, which a 4-byte word would not tell apart; the CSV's last line loses its
+                // polarity with its newline: a line without only its newline is whole).
                 let len = std::fs::metadata(&path).unwrap().len();
                 let f = std::fs::OpenOptions::new().write(true).open(&path).unwrap();
-                f.set_len(len - if name == "c.raw" { 3 } else { 1 })
-                    .unwrap();
+                let cut = match name {
+                    "c.raw" => 3,
+                    "d.csv" => 2,
+                    _ => 1,
+                };
+                f.set_len(len - cut).unwrap();
             } else {
                 assert!(
                     format::open(&path).is_err(),

@@ -266,3 +266,51 @@ fn a_pacing_output_honours_the_duration() {
     assert!(line.contains("dropped"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// `repair` never loses events of a whole file: a whole `.npz` or `.h5` beside another run's
+/// journal stays as it is (it was replaced by the journal's 7 events), and a whole CSV whose
+/// last line has no newline keeps that line (a line cut short is still cut).
+#[test]
+fn repair_keeps_every_event_of_a_whole_file() {
+    use v2ce::event::Event;
+    use v2ce::format::{self, Format};
+    let dir = temp_dir("repair");
+    let events: Vec<Event> = (0..3000)
+        .map(|i| Event::new(1000 + i * 10, (i % 30) as u16, (i % 20) as u16, i % 3 == 0))
+        .collect();
+    for (name, fmt) in [("whole.npz", Format::Npz), ("whole.h5", Format::Hdf5)] {
+        let path = dir.join(name);
+        let mut enc = format::create(&path, fmt, 64, 48).unwrap();
+        enc.write(&events).unwrap();
+        enc.finish().unwrap();
+        drop(enc);
+        // Another run's journal of 7 records: an encoder dropped before its end leaves it.
+        let other = dir.join(format!("other-{name}"));
+        let mut enc = format::create(&other, fmt, 64, 48).unwrap();
+        enc.write(&events[..7]).unwrap();
+        enc.flush().unwrap();
+        drop(enc);
+        let journal = format::journal::path_for(&other);
+        assert!(journal.exists(), "{name}: no journal left");
+        std::fs::rename(&journal, format::journal::path_for(&path)).unwrap();
+        let report = v2ce::repair::repair(&path, None).unwrap();
+        assert_eq!(report.events, 3000, "{name}: {report}");
+        assert_eq!(report.action, v2ce::repair::Action::Whole, "{name}");
+        assert_eq!(format::read_events(&path).unwrap().events.len(), 3000);
+    }
+    let csv = dir.join("no-newline.csv");
+    std::fs::write(&csv, "t_us,x,y,p\n1,2,3,1\n4,5,6,0\n7,8,9,1").unwrap();
+    let report = v2ce::repair::repair(&csv, None).unwrap();
+    assert_eq!(
+        (report.events, report.action.clone()),
+        (3, v2ce::repair::Action::Whole)
+    );
+    std::fs::write(&csv, "t_us,x,y,p\n1,2,3,1\n4,5,6,0\n7,8").unwrap();
+    let report = v2ce::repair::repair(&csv, None).unwrap();
+    assert_eq!(report.events, 2, "{report}");
+    assert_eq!(
+        std::fs::read_to_string(&csv).unwrap(),
+        "t_us,x,y,p\n1,2,3,1\n4,5,6,0\n"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -1,4 +1,8 @@
 //! CSV events: a header line `t_us,x,y,on`, then one event per line with `on` = 1 or 0.
+//!
+//! Read by the header's column names, in any order, so the files other tools write read too
+//! (`t_us,x,y,p`, `timestamp,x,y,polarity`, `t,x,y,p` with times in seconds): see [`Layout`].
+//! Without a header the columns are `t_us,x,y,on`. Written as `t_us,x,y,on`.
 
 use std::io::{BufRead, Write};
 use std::path::Path;
@@ -43,18 +47,147 @@ pub fn write(path: &Path, events: &[Event]) -> Result<()> {
     write_to(std::io::BufWriter::new(file), events).map_err(|e| Error::io(path, e))
 }
 
-/// Parses one data line.
-fn parse_line(line: &str) -> Option<Event> {
-    let mut f = line.split(',').map(str::trim);
-    let t = f.next()?.parse().ok()?;
-    let x = f.next()?.parse().ok()?;
-    let y = f.next()?.parse().ok()?;
-    let on = match f.next()? {
-        "1" => true,
-        "0" => false,
-        _ => return None,
+/// The names a header may give each column (compared without case): time in microseconds,
+/// time in seconds, column, row, polarity.
+const TIME_US: &[&str] = &[
+    "t_us",
+    "t",
+    "ts",
+    "timestamp",
+    "time",
+    "timestamp_us",
+    "time_us",
+];
+const TIME_S: &[&str] = &["t_s", "timestamp_s", "time_s", "seconds", "t_sec"];
+const X: &[&str] = &["x"];
+const Y: &[&str] = &["y"];
+const POLARITY: &[&str] = &["on", "p", "pol", "polarity"];
+
+/// Where each quantity is in a line, from the header's names (see the consts above; other
+/// columns are ignored), and the time's unit.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Layout {
+    t: usize,
+    x: usize,
+    y: usize,
+    p: usize,
+    /// The number of columns a line has.
+    columns: usize,
+    /// Times in seconds: the header says so, or (`None` until the first line) its values are
+    /// fractional.
+    seconds: Option<bool>,
+}
+
+impl Default for Layout {
+    /// The project's own columns, `t_us,x,y,on`.
+    fn default() -> Self {
+        Layout {
+            t: 0,
+            x: 1,
+            y: 2,
+            p: 3,
+            columns: 4,
+            seconds: Some(false),
+        }
+    }
+}
+
+impl Layout {
+    /// The layout a header line names; `None` for a line that is not a header (its first
+    /// field is a number: data without a header, read as `t_us,x,y,on`); an error for a header
+    /// that lacks a quantity, listing what is accepted.
+    pub fn from_header(line: &str) -> Result<Option<Layout>> {
+        let names: Vec<String> = line
+            .split(',')
+            .map(|n| n.trim().trim_matches('"').to_ascii_lowercase())
+            .collect();
+        if names.first().is_some_and(|n| n.parse::<f64>().is_ok()) {
+            return Ok(None);
+        }
+        let find = |accepted: &[&str]| names.iter().position(|n| accepted.contains(&n.as_str()));
+        let (t, seconds) = match (find(TIME_US), find(TIME_S)) {
+            (Some(t), _) => (
+                Some(t),
+                if names[t] == "t_us" {
+                    Some(false)
+                } else {
+                    None
+                },
+            ),
+            (None, Some(t)) => (Some(t), Some(true)),
+            (None, None) => (None, None),
+        };
+        match (t, find(X), find(Y), find(POLARITY)) {
+            (Some(t), Some(x), Some(y), Some(p)) => Ok(Some(Layout {
+                t,
+                x,
+                y,
+                p,
+                columns: names.len(),
+                seconds,
+            })),
+            _ => Err(Error::invalid(
+                "CSV header",
+                format!(
+                    "'{}' does not name a time, x, y and polarity column (accepted, in any \
+                     order: time in us {}, in s {}; {}; {}; polarity {}, with values 1/0, \
+                     1/-1 or true/false)",
+                    line.escape_debug(),
+                    TIME_US.join("/"),
+                    TIME_S.join("/"),
+                    X.join("/"),
+                    Y.join("/"),
+                    POLARITY.join("/")
+                ),
+            )),
+        }
+    }
+
+    /// Parses one data line (`None` where it does not hold an event in this layout); the
+    /// first one decides whether a time column of unstated unit is in seconds.
+    pub fn parse(&mut self, line: &str) -> Option<Event> {
+        let f: Vec<&str> = line.split(',').map(str::trim).collect();
+        if f.len() != self.columns {
+            return None;
+        }
+        let time = f[self.t];
+        let seconds = *self
+            .seconds
+            .get_or_insert_with(|| time.contains(['.', 'e', 'E']));
+        let t = if seconds {
+            let s: f64 = time.parse().ok()?;
+            let us = (s * 1e6).round();
+            // Within the times the program takes (checked again where they enter).
+            if !us.is_finite() || us.abs() > crate::time::MAX_ABS_US as f64 {
+                return None;
+            }
+            us as i64
+        } else {
+            time.parse().ok()?
+        };
+        let x = f[self.x].parse().ok()?;
+        let y = f[self.y].parse().ok()?;
+        let on = match f[self.p].to_ascii_lowercase().as_str() {
+            "1" | "true" => true,
+            "0" | "-1" | "false" => false,
+            _ => return None,
+        };
+        Some(Event::new(t, x, y, on))
+    }
+}
+
+/// Whether `last`, a file's last line without its newline, holds a whole event in the columns
+/// the file's first line `first` names (a writer killed mid-line leaves one that does not);
+/// `data`, its first data line, settles the unit of a time column that does not state one.
+pub fn is_whole_last_line(first: &str, data: &str, last: &str) -> bool {
+    let mut layout = match Layout::from_header(first.trim()) {
+        Ok(Some(layout)) => layout,
+        Ok(None) => Layout::default(),
+        Err(_) => return false,
     };
-    f.next().is_none().then_some(Event::new(t, x, y, on))
+    let _ = layout.parse(data.trim());
+    let last = last.trim();
+    !last.is_empty() && layout.parse(last).is_some()
 }
 
 /// Streams events out of CSV text (the header line is optional).
@@ -62,6 +195,8 @@ pub struct Decoder<R> {
     reader: R,
     line: u64,
     buf: Vec<u8>,
+    /// The columns, from the header (the project's own without one).
+    layout: Layout,
 }
 
 impl<R: BufRead> Decoder<R> {
@@ -71,6 +206,7 @@ impl<R: BufRead> Decoder<R> {
             reader,
             line: 0,
             buf: Vec::new(),
+            layout: Layout::default(),
         }
     }
 }
@@ -100,11 +236,23 @@ impl<R: BufRead> EventDecoder for Decoder<R> {
             let last = self.buf.last() != Some(&b'\n');
             let text = std::str::from_utf8(&self.buf).map(str::trim);
             let event = match text {
-                Ok(t) if t.is_empty() || (self.line == 1 && t == HEADER) => continue,
-                Ok(t) => parse_line(t).ok_or_else(|| {
+                Ok("") => continue,
+                Ok(t) if self.line == 1 => match Layout::from_header(t)? {
+                    Some(layout) => {
+                        self.layout = layout;
+                        continue;
+                    }
+                    None => self.layout.parse(t).ok_or_else(|| {
+                        bad(self.line, format!("not an event: '{}'", t.escape_debug()))
+                    }),
+                },
+                Ok(t) => self.layout.parse(t).ok_or_else(|| {
                     bad(
                         self.line,
-                        format!("expected '{HEADER}' fields, got '{}'", t.escape_debug()),
+                        format!(
+                            "not an event in the header's columns: '{}'",
+                            t.escape_debug()
+                        ),
                     )
                 }),
                 Err(_) => Err(bad(self.line, "not UTF-8".into())),
@@ -177,6 +325,43 @@ impl<W: Write> EventEncoder for Encoder<W> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn decode(text: &str) -> Result<Vec<Event>> {
+        let mut out = Vec::new();
+        Decoder::new(text.as_bytes()).read_events(&mut out, usize::MAX)?;
+        Ok(out)
+    }
+
+    /// Other tools' headers read by their names, in any order, times in seconds where the
+    /// header says so or the values are fractional, polarity as 1/0, 1/-1 or true/false.
+    #[test]
+    fn columns_are_read_by_their_names() {
+        let want = vec![Event::new(1500, 3, 4, true), Event::new(2500, 5, 6, false)];
+        for text in [
+            "t_us,x,y,on\n1500,3,4,1\n2500,5,6,0\n",
+            "t_us,x,y,p\n1500,3,4,1\n2500,5,6,0\n",
+            "timestamp,x,y,polarity\n1500,3,4,1\n2500,5,6,-1\n",
+            "t,x,y,p\n0.0015,3,4,1\n0.0025,5,6,0\n",
+            "p,y,x,t_s\ntrue,4,3,0.0015\nfalse,6,5,0.0025\n",
+            "X, Y, T_US, Pol, extra\n3,4,1500,1,a\n5,6,2500,0,b\n",
+            "\"timestamp\",\"x\",\"y\",\"p\"\n1500,3,4,1\n2500,5,6,0",
+            "1500,3,4,1\n2500,5,6,0\n",
+        ] {
+            assert_eq!(decode(text).unwrap(), want, "{text}");
+        }
+        // A header without a polarity names what is accepted.
+        let err = decode("t_us,x,y,brightness\n1,2,3,1\n")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("polarity") && err.contains("t_us"), "{err}");
+        // A line that is not an event in the header's columns names its line.
+        let err = decode("t_us,x,y,p\n1,2,3,1\n4,5,6\n7,8,9,1\n")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("line 3"), "{err}");
+        // Seconds too large for the program's times are refused, not wrapped.
+        assert!(decode("t_s,x,y,p\n1e300,1,1,1\n2,1,1,1\n").is_err());
+    }
 
     #[test]
     fn round_trip_and_errors() {
