@@ -452,6 +452,27 @@ fn threads_and_rss(pid: u32) -> (Threads, u64) {
     (threads, rss)
 }
 
+/// The threads of `pid` once its pipeline is whole: every stage and `sinks` outputs started
+/// (the listener answers before the pipeline has spawned them all; a busy machine can leave
+/// that window open for a while).
+fn pipeline_threads_and_rss(pid: u32, sinks: u64) -> (Threads, u64) {
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let (threads, rss) = threads_and_rss(pid);
+        let started = threads
+            .0
+            .iter()
+            .filter(|(name, _)| name.starts_with("v2ce-sink"))
+            .map(|(_, n)| n)
+            .sum::<u64>();
+        if (threads.0.contains_key("v2ce-stage2") && started >= sinks) || Instant::now() > deadline
+        {
+            return (threads, rss);
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
 /// A process's threads counted by name.
 #[derive(Debug, Default)]
 struct Threads(std::collections::BTreeMap<String, u64>);
@@ -524,7 +545,8 @@ fn the_listener_holds_under_attack_and_never_holds_the_daemon() {
     let a = daemon.address.clone();
     let pid = daemon.child.id();
     assert_eq!(daemon.get("/healthz").0, 200);
-    let (threads0, rss0) = threads_and_rss(pid);
+    // The UDP output and the preview's.
+    let (threads0, rss0) = pipeline_threads_and_rss(pid, 2);
     let second = Duration::from_secs(1);
 
     // A body announced larger than memory: refused at once, nothing read or allocated.
@@ -821,7 +843,7 @@ fn preview_streams_never_delay_probes() {
     wait_for(Duration::from_secs(60), "frames flowing", || {
         daemon.get("/readyz").0 == 200
     });
-    let (threads0, _) = threads_and_rss(pid);
+    let (threads0, _) = pipeline_threads_and_rss(pid, 2);
     let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
     // The page's longest window: the densest frames, the slowest to encode.
     let readers: Vec<_> = (0..8)
