@@ -298,6 +298,25 @@ pub fn simulate<'f>(
     Ok(events)
 }
 
+/// [`simulate`] on the frames of `source`, read one at a time (memory holds the events, not the
+/// frames); returns the events and the frames stepped.
+pub fn simulate_source(
+    source: &mut dyn crate::frame::FrameSource,
+    size: (u16, u16),
+    cfg: &PhysicsConfig,
+    seed: u64,
+) -> Result<(Vec<Event>, u64)> {
+    let mut sim = PhysicsSim::new(cfg.clone(), size.0, size.1, seed)?;
+    let mut events = Vec::new();
+    let mut frames = 0u64;
+    while let Some(f) = source.next_frame()? {
+        sim.step(&f, &mut events)?;
+        frames += 1;
+    }
+    sort_events(&mut events);
+    Ok((events, frames))
+}
+
 /// Per frame interval, the pixels whose log intensity moves less than `STATIC_LOG` across it.
 fn still_pixels(frames: &[Frame]) -> Vec<Vec<bool>> {
     let log = |v: u16| ((v as f64 / FULL_SCALE as f64) + 1e-3).ln();

@@ -396,14 +396,16 @@ pub fn simulate_physics(
             ),
         ));
     }
-    let frames = crate::frame::read_frames(source.as_mut(), usize::MAX)?;
+    // One frame at a time: a high --fps over a long recording makes more frames than memory
+    // holds, the events they make are bounded as the pixel model's are.
     note(&format!(
-        "simulating {} frames ({}) with the physics tier (preset {})",
-        frames.len(),
+        "simulating the frames of {} with the physics tier (preset {})",
         source.describe(),
         stage1.preset_name()
     ));
-    let events = crate::calibrate::simulate(&frames, size, &stage1.physics_config(), seed)?;
+    let (events, frames) =
+        crate::calibrate::simulate_source(source.as_mut(), size, &stage1.physics_config(), seed)?;
+    tracing::info!("simulated {frames} frames");
     Ok(Recording::new(events, Some(size)))
 }
 

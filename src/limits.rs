@@ -17,6 +17,10 @@ pub const MAX_SECONDS: f64 = 1e8;
 /// The most frame intervals one evaluation builds (160 MB of intervals).
 pub const MAX_INTERVALS: u64 = 10_000_000;
 
+/// The largest storage chunk a file may declare, bytes (256 MiB: the readers decode a chunk
+/// whole; DSEC's and this project's `.h5` chunks are under 1 MiB).
+pub const MAX_CHUNK_BYTES: u64 = 256 << 20;
+
 /// Most threads `V2CE_THREADS` may ask for (each is a helper thread with its own stack).
 pub const MAX_THREADS: usize = 256;
 
@@ -115,6 +119,38 @@ pub fn memory(what: &'static str, bytes: u64, purpose: &str) -> Result<()> {
         )),
         _ => Ok(()),
     }
+}
+
+/// Growth below this many bytes is not checked against [`memory_available`] (reading it
+/// costs a few microseconds; small growth cannot take what is left).
+const CHECKED_GROWTH: u64 = 64 << 20;
+
+/// Makes room in `v` for one more element (doubling, as `push` does) where memory allows it
+/// ([`memory_available`], and the allocator itself): `false`, with nothing allocated, where
+/// it does not. For buffers whose length comes from outside (the events a frame produces),
+/// so that too many give a clear error instead of an abort.
+pub fn room_for_one<T>(v: &mut Vec<T>) -> bool {
+    if v.len() < v.capacity() {
+        return true;
+    }
+    let extra = v.capacity().max(256);
+    let bytes = (extra as u64).saturating_mul(std::mem::size_of::<T>() as u64);
+    if bytes >= CHECKED_GROWTH && memory_available().is_some_and(|free| bytes > free) {
+        return false;
+    }
+    v.try_reserve(extra).is_ok()
+}
+
+/// Makes room in `v` for `n` more elements where memory allows it (see [`room_for_one`]).
+pub fn room_for<T>(v: &mut Vec<T>, n: usize) -> bool {
+    if v.capacity() - v.len() >= n {
+        return true;
+    }
+    let bytes = (n as u64).saturating_mul(std::mem::size_of::<T>() as u64);
+    if bytes >= CHECKED_GROWTH && memory_available().is_some_and(|free| bytes > free) {
+        return false;
+    }
+    v.try_reserve(n).is_ok()
 }
 
 /// The slowest and fastest replay of a recording, times real time.

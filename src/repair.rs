@@ -163,8 +163,36 @@ fn whole(path: &Path, output: Option<&Path>, events: u64) -> Result<Report> {
     })
 }
 
+/// Cuts `path` (`.csv`, `.raw`, `.aedat4`) after its last whole unit in place, as [`repair`]
+/// does; returns the events it then holds. Needs no room on the disk (a full disk's output is
+/// closed this way).
+pub fn cut_in_place(path: &Path) -> Result<u64> {
+    repair(path, None).map(|r| r.events)
+}
+
 /// Writes `target` in `format` from the journal at `journal_path`, then removes the journal.
 fn from_journal(journal_path: &Path, target: &Path, format: Format) -> Result<Report> {
+    if format == Format::Npz && journal::is_archive(journal_path) {
+        // Closed in place, not yet renamed: read through, then given the name.
+        let mut decoder = format::npz::Decoder::open(journal_path)?;
+        let (mut events, mut buf) = (0u64, Vec::new());
+        loop {
+            buf.clear();
+            match decoder.read_events(&mut buf, 1 << 16)? {
+                0 => break,
+                n => events += n as u64,
+            }
+        }
+        let out = format::PartialOutput::new(target);
+        std::fs::copy(journal_path, out.writing()).map_err(|e| Error::io(out.writing(), e))?;
+        out.commit()?;
+        std::fs::remove_file(journal_path).map_err(|e| Error::io(journal_path, e))?;
+        return Ok(Report {
+            output: target.to_path_buf(),
+            events,
+            action: Action::FromJournal(journal_path.to_path_buf()),
+        });
+    }
     let mut decoder = journal::Decoder::open(journal_path)?;
     let size = decoder.size().unwrap_or((0, 0));
     let out = format::PartialOutput::new(target);
@@ -407,6 +435,18 @@ mod tests {
         assert_eq!(report.events, 99);
         assert_eq!(std::fs::read(&path).unwrap().len(), bytes.len() - 3);
         assert!(repair(&path, Some(&path)).is_err());
+        // An archive closed in place under its journal's name (stopped before the rename).
+        let path = dir.join("h.npz");
+        let mut enc = format::create(&path, Format::Npz, 346, 260).unwrap();
+        enc.write(&all[..500]).unwrap();
+        enc.finish().unwrap();
+        drop(enc);
+        std::fs::rename(&path, journal::path_for(&path)).unwrap();
+        std::fs::write(&path, b"").unwrap();
+        let report = repair(&path, None).unwrap();
+        assert_eq!(report.events, 500, "{report}");
+        assert_eq!(read(&path), all[..500]);
+        assert!(!journal::path_for(&path).exists());
         // Not ours to mend: an .npz without its journal; a type it cannot write.
         std::fs::write(dir.join("x.npz"), b"PK nonsense").unwrap();
         let e = repair(&dir.join("x.npz"), None).unwrap_err().to_string();

@@ -1,6 +1,8 @@
 //! Nothing lost, nothing overwritten: an output that would replace an input or a device node
 //! is refused before any work, for every command that writes a file.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -178,12 +180,25 @@ impl Drop for SmallDisk {
     }
 }
 
-/// The red team's full disk: a file output of `run` that fills a 2 MiB tmpfs while the UDP
-/// output goes on. The file holds exactly the events the closing line reports (our decoder
-/// reads it back: no hole of zero bytes where the failed write was cut back, which CSV
-/// refused and the binary formats decoded as events), and the run exits 1 naming the output.
+/// The file and count in "...; FILE was closed readably with the N events ...".
+fn closed_with(stderr: &str) -> Option<(PathBuf, u64)> {
+    let at = stderr.find(" was closed readably with the ")?;
+    let n = stderr[at..]
+        .split_whitespace()
+        .nth(5)
+        .and_then(|n| n.parse().ok())?;
+    let path = stderr[..at].rsplit("; ").next()?;
+    Some((PathBuf::from(path), n))
+}
+
+/// A full disk (a 2 MiB tmpfs) under every command that writes events, in every format: the
+/// command says it failed (exit 1; `run` names the output while its UDP output goes on) and
+/// how many events the file was closed with; the file reads back with our decoder and with
+/// the independent reader of its format (with the project's venv) holding exactly those. The
+/// red team's file had zero bytes where a failed write was cut back (CSV unreadable, the
+/// binary formats decoding fake events) and `.npz`/`.h5` were left unreadable.
 #[test]
-fn a_full_disk_under_a_running_daemon_leaves_what_was_reported() {
+fn a_full_disk_leaves_a_readable_file_holding_what_was_reported() {
     let disk = match SmallDisk::mount("tmpfs", "2m") {
         Ok(d) => d,
         Err(why) => {
@@ -191,38 +206,130 @@ fn a_full_disk_under_a_running_daemon_leaves_what_was_reported() {
             return;
         }
     };
-    for out in ["f.csv", "f.raw", "f.aedat4"] {
-        let path = disk.0.join(out);
-        let done = v2ce()
-            .args(["run", "--source", "fixture", "--max-frames", "200"])
-            .args(["--udp", "127.0.0.1:9", "--queue-policy", "block"])
-            .args(["--replay-speed", "4", "--out"])
-            .arg(&path)
-            .output()
-            .unwrap();
-        let err = String::from_utf8_lossy(&done.stderr);
-        assert_eq!(done.status.code(), Some(1), "{out}: {err}");
-        assert!(err.contains("output(s) failed"), "{out}: {err}");
-        let line = err
-            .lines()
-            .find(|l| l.contains(&format!("file {}", path.display())) && l.contains("events sent"))
-            .unwrap_or_else(|| panic!("{out}: no closing line for the file: {err}"));
-        let sent: u64 = line
-            .split("): ")
-            .nth(1)
-            .and_then(|rest| rest.split_whitespace().next())
-            .and_then(|n| n.parse().ok())
-            .unwrap_or_else(|| panic!("{out}: no count in {line}"));
-        assert!(sent > 0, "{line}");
-        let back = v2ce::format::read_events(&path)
-            .unwrap_or_else(|e| panic!("{out} does not read back: {e}"));
-        assert_eq!(back.events.len() as u64, sent, "{out}: {line}");
-        if out.ends_with(".csv") {
-            let bytes = std::fs::read(&path).unwrap();
-            assert!(!bytes.contains(&0), "{out} holds zero bytes");
-        }
-        std::fs::remove_file(&path).unwrap();
+    let py = common::python();
+    if py.is_none() {
+        println!("SKIPPED the independent readers of the full-disk files: no Python venv");
     }
+    let work = temp_dir("full-disk-work");
+    let source = work.join("source.aedat4");
+    let made = v2ce()
+        .args(["convert", "fixture", "--max-frames", "100", "-o"])
+        .arg(&source)
+        .output()
+        .unwrap();
+    assert!(made.status.success(), "{made:?}");
+    for (ext, evt, readers) in [
+        ("csv", None, &["faery"][..]),
+        ("raw", Some("2"), &["faery", "expelliarmus"]),
+        ("raw", Some("3"), &["faery"]),
+        ("aedat4", None, &["faery", "aedat", "dv"]),
+        ("npz", None, &["numpy"]),
+        ("h5", None, &["h5py"]),
+    ] {
+        for command in ["run", "convert", "transcode"] {
+            let case = format!("{command} .{ext} {}", evt.unwrap_or(""));
+            for entry in std::fs::read_dir(&disk.0).unwrap() {
+                std::fs::remove_file(entry.unwrap().path()).unwrap();
+            }
+            let out = disk.0.join(format!("f.{ext}"));
+            let mut c = v2ce();
+            match command {
+                "run" => {
+                    let config = work.join("run.toml");
+                    std::fs::write(
+                        &config,
+                        format!(
+                            "[[sink]]\ntype = \"file\"\npath = {:?}\nevt = {}\n",
+                            out.display().to_string(),
+                            evt.unwrap_or("2")
+                        ),
+                    )
+                    .unwrap();
+                    c.args(["run", "--source", "fixture", "--max-frames", "100"])
+                        .args(["--udp", "127.0.0.1:9", "--queue-policy", "block"])
+                        .args(["--replay-speed", "8", "--config"])
+                        .arg(&config);
+                }
+                "convert" => {
+                    c.args(["convert", "fixture", "--max-frames", "100", "-o"])
+                        .arg(&out);
+                }
+                _ => {
+                    c.arg("transcode").arg(&source).arg(&out);
+                }
+            }
+            if let (Some(evt), true) = (evt, command != "run") {
+                c.args(["--evt", evt]);
+            }
+            let done = c.output().unwrap();
+            let err = String::from_utf8_lossy(&done.stderr);
+            assert_eq!(done.status.code(), Some(1), "{case}: {err}");
+            let (path, kept) =
+                closed_with(&err).unwrap_or_else(|| panic!("{case}: no count said: {err}"));
+            if command == "run" {
+                assert!(err.contains("output(s) failed"), "{case}: {err}");
+                // The closing line's count is the file's.
+                let line = err
+                    .lines()
+                    .find(|l| {
+                        l.contains(&format!("file {}", out.display())) && l.contains("events sent")
+                    })
+                    .unwrap_or_else(|| panic!("{case}: no closing line for the file: {err}"));
+                assert!(
+                    line.contains(&format!("): {kept} events sent")),
+                    "{case}: {line}"
+                );
+            }
+            assert!(path.starts_with(&disk.0), "{case}: {}", path.display());
+            assert!(kept > 0, "{case}: {err}");
+            let back = v2ce::format::read_events(&path)
+                .unwrap_or_else(|e| panic!("{case}: {} does not read back: {e}", path.display()));
+            assert_eq!(back.events.len() as u64, kept, "{case}: {err}");
+            assert!(
+                !v2ce::format::journal::path_for(&path).exists(),
+                "{case}: a journal left beside the closed file"
+            );
+            if ext == "csv" {
+                assert!(
+                    !std::fs::read(&path).unwrap().contains(&0),
+                    "{case}: zero bytes"
+                );
+            }
+            if let Some(py) = &py {
+                let expected = work.join("expected.csv");
+                v2ce::format::csv::write(&expected, back.events.events()).unwrap();
+                let first = back.events.events().first().map_or(0, |e| e.t);
+                let offset = match evt {
+                    Some("2") => {
+                        v2ce::format::raw::time_offset_for(v2ce::format::raw::Evt::Evt2, first)
+                    }
+                    Some("3") => {
+                        v2ce::format::raw::time_offset_for(v2ce::format::raw::Evt::Evt3, first)
+                    }
+                    _ => 0,
+                };
+                for reader in readers {
+                    let out = Command::new(py)
+                        .arg(common::script())
+                        .args(["file", reader])
+                        .arg(&path)
+                        .arg(&expected)
+                        .arg(offset.to_string())
+                        .output()
+                        .unwrap();
+                    assert!(
+                        out.status.success(),
+                        "{case}: {reader} on {}: {}{}",
+                        path.display(),
+                        String::from_utf8_lossy(&out.stdout),
+                        String::from_utf8_lossy(&out.stderr)
+                    );
+                }
+            }
+            println!("{case}: {} holds the {kept} events said", path.display());
+        }
+    }
+    std::fs::remove_dir_all(&work).unwrap();
 }
 
 /// A pacing UDP output (`udp_rate = 1`, a datagram a second for a frame's thousands) stops

@@ -66,15 +66,18 @@ fn guarded<T>(what: &str, f: impl FnOnce() -> PyResult<T>) -> PyResult<T> {
 }
 
 /// Events packed as the records the Python side views.
-fn pack(events: &[Event]) -> Vec<u8> {
-    let mut out = vec![0u8; events.len() * RECORD];
+/// The events as records, in memory checked first (a clear error, not an abort).
+fn pack(events: &[Event]) -> v2ce::Result<Vec<u8>> {
+    let bytes = events.len().saturating_mul(RECORD);
+    v2ce::limits::memory("events", bytes as u64, "packing the events for NumPy")?;
+    let mut out = vec![0u8; bytes];
     for (e, r) in events.iter().zip(out.chunks_exact_mut(RECORD)) {
         r[0..8].copy_from_slice(&e.t.to_le_bytes());
         r[8..10].copy_from_slice(&e.x.to_le_bytes());
         r[10..12].copy_from_slice(&e.y.to_le_bytes());
         r[12] = u8::from(e.on);
     }
-    out
+    Ok(out)
 }
 
 fn records<'py>(py: Python<'py>, bytes: Vec<u8>) -> Bound<'py, PyArray1<u8>> {
@@ -274,7 +277,7 @@ fn run_conversion(
             progress,
         )?;
         let events = std::mem::take(&mut *events.lock().unwrap_or_else(|e| e.into_inner()));
-        Ok((pack(&events), out_size))
+        Ok((pack(&events)?, out_size))
     });
     if interrupted.load(Ordering::Relaxed) {
         return Err(PyKeyboardInterrupt::new_err("v2ce.convert interrupted"));
@@ -449,7 +452,7 @@ impl Simulator {
                 let mut batches = Vec::new();
                 s.stage1.push(&frame, &mut batches).map_err(py_err)?;
                 s.last_t = Some(t_us);
-                Ok(pack(&s.events(batches)))
+                pack(&s.events(batches)).map_err(py_err)
             })?;
             Ok(records(py, bytes))
         })
@@ -466,7 +469,7 @@ impl Simulator {
                 s.finished = true;
                 let mut batches = Vec::new();
                 s.stage1.finish(&mut batches).map_err(py_err)?;
-                Ok(pack(&s.events(batches)))
+                pack(&s.events(batches)).map_err(py_err)
             })?;
             Ok(records(py, bytes))
         })
@@ -485,10 +488,8 @@ fn read(py: Python<'_>, path: PathBuf) -> PyResult<EventsAndSize<'_>> {
     guarded("read", || {
         let (bytes, size) = py
             .detach(|| {
-                v2ce::format::read_events(&path).map(|r| {
-                    let size = (r.width, r.height);
-                    (pack(r.events.events()), size)
-                })
+                v2ce::format::read_events(&path)
+                    .and_then(|r| Ok((pack(r.events.events())?, (r.width, r.height))))
             })
             .map_err(py_err)?;
         Ok((records(py, bytes), size))
@@ -719,7 +720,7 @@ fn sample<'py>(
                     s.sample(&grid, *iv, &mut events);
                     out.extend(events);
                 }
-                Ok(pack(&out))
+                pack(&out)
             };
             work().map_err(py_err)
         })?;
@@ -835,10 +836,28 @@ impl Reader {
             let bytes = py
                 .detach(|| -> v2ce::Result<Vec<u8>> {
                     let mut d = self.decoder.lock().unwrap_or_else(|e| e.into_inner());
-                    let mut out = Vec::with_capacity(n.min(1 << 20));
-                    d.read_events(&mut out, n)
-                        .map_err(|e| Error::format(&path, e.to_string()))?;
-                    Ok(pack(&out))
+                    // A piece at a time, memory checked as it grows: `n` comes from the caller.
+                    let mut out = Vec::new();
+                    while out.len() < n {
+                        let want = (n - out.len()).min(1 << 20);
+                        if !v2ce::limits::room_for(&mut out, want) {
+                            return Err(Error::format(
+                                &path,
+                                format!(
+                                    "a chunk of {n} events needs more memory than this machine \
+                                     has left ({} read): ask for fewer",
+                                    out.len()
+                                ),
+                            ));
+                        }
+                        let got = d
+                            .read_events(&mut out, want)
+                            .map_err(|e| Error::format(&path, e.to_string()))?;
+                        if got == 0 {
+                            break;
+                        }
+                    }
+                    pack(&out)
                 })
                 .map_err(py_err)?;
             Ok(records(py, bytes))

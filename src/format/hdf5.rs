@@ -162,13 +162,20 @@ pub struct Encoder {
     bp: Vec<u8>,
     bms: Vec<u64>,
     /// Every event taken, for `v2ce repair` should the run be killed before the file is
-    /// closed (see [`super::journal`]).
-    journal: Journal,
+    /// closed (see [`super::journal`]); `None` when written from a journal.
+    journal: Option<Journal>,
 }
 
 impl Encoder {
     /// Creates (or truncates) `path` for a `width x height` sensor.
     pub fn create(path: &Path, width: u16, height: u16) -> Result<Self> {
+        let mut encoder = Self::create_unjournaled(path, width, height)?;
+        encoder.journal = Some(Journal::create(path, width, height)?);
+        Ok(encoder)
+    }
+
+    /// [`Encoder::create`] without a journal: for a file written from one.
+    fn create_unjournaled(path: &Path, width: u16, height: u16) -> Result<Self> {
         let file = options()
             .create(path)
             .map_err(h5err("cannot create the file"))?;
@@ -196,9 +203,8 @@ impl Encoder {
                 .and_then(|a| a.write_numeric(&value))
                 .map_err(h5err(name))?;
         }
-        let journal = Journal::create(path, width, height)?;
         Ok(Encoder {
-            journal,
+            journal: None,
             columns: Some(columns),
             file: Some(file),
             path: path.to_path_buf(),
@@ -357,15 +363,67 @@ impl EventEncoder for Encoder {
     fn write(&mut self, events: &[Event]) -> Result<()> {
         let mut taken = 0;
         let took = self.take(events, &mut taken);
-        self.journal.append(&events[..taken])?;
+        if let Some(journal) = self.journal.as_mut() {
+            journal.append(&events[..taken])?;
+        }
         took
     }
 
     /// The events go to the journal, which a killed run leaves for `v2ce repair`.
     fn flush(&mut self) -> Result<()> {
-        self.journal.flush()
+        match self.journal.as_mut() {
+            Some(journal) => journal.flush(),
+            None => Ok(()),
+        }
     }
 
+    /// The file written again from the records that reached the journal (the library's file,
+    /// whose writes failed, removed first: its room is what the new one takes). As many events
+    /// as the failed file held, fewer where even that does not fit; the rest go with the
+    /// journal, as the file holds exactly what is reported.
+    fn salvage(&mut self) -> Result<Option<u64>> {
+        let Some(mut journal) = self.journal.take() else {
+            return Ok(None);
+        };
+        let (file, count) = journal.into_file()?;
+        drop(file);
+        drop(self.columns.take());
+        if let Some(file) = self.file.take() {
+            // Closed, not dropped: the library says on stderr when a drop cannot finish.
+            let _ = file.close();
+        }
+        let journal_path = journal.path().to_path_buf();
+        // All it took, else as many as the failed file held, else fewer.
+        let mut tries = [count, count.min(self.flushed as u64)].into_iter();
+        let mut want = count;
+        let mut last_error = None;
+        for _ in 0..8 {
+            want = tries.next().unwrap_or(want / 2);
+            let _ = std::fs::remove_file(&self.path);
+            match self.write_from(&journal_path, want) {
+                Ok(()) => {
+                    journal.complete();
+                    return Ok(Some(want));
+                }
+                Err(e) if want > 0 => {
+                    tracing::debug!("{}: {e}; trying fewer events", self.path.display());
+                    last_error = Some(e);
+                }
+                Err(e) => {
+                    last_error = Some(e);
+                    break;
+                }
+            }
+        }
+        let _ = std::fs::remove_file(&self.path);
+        Err(Error::Run(format!(
+            "{}; the {count} events are in {} (`v2ce repair {}` writes the file once the disk \
+             has room)",
+            last_error.map_or_else(String::new, |e| e.to_string()),
+            journal_path.display(),
+            self.path.display()
+        )))
+    }
     /// Written whole only at the end (the file's index comes last); until then `v2ce repair`
     /// makes the file from its journal.
     fn readable_after_flush(&self) -> bool {
@@ -380,8 +438,32 @@ impl EventEncoder for Encoder {
         };
         drop(columns);
         file.close().map_err(h5err("cannot close the file"))?;
-        self.journal.complete();
+        if let Some(journal) = self.journal.as_mut() {
+            journal.complete();
+        }
         Ok(())
+    }
+}
+
+impl Encoder {
+    /// Writes this encoder's file, without a journal, from the first `n` events of `journal`.
+    fn write_from(&self, journal: &Path, n: u64) -> Result<()> {
+        let mut from = super::journal::Decoder::open(journal)?;
+        let mut to = Encoder::create_unjournaled(&self.path, self.width, self.height)?;
+        let mut buf = Vec::with_capacity(CHUNK);
+        let mut left = n;
+        while left > 0 {
+            buf.clear();
+            let want = CHUNK.min(usize::try_from(left).unwrap_or(CHUNK));
+            let got = from.read_events(&mut buf, want)?;
+            if got == 0 {
+                return Err(bad(format!("the journal ends {left} events short")));
+            }
+            buf.truncate(want);
+            to.write(&buf)?;
+            left = left.saturating_sub(buf.len() as u64);
+        }
+        to.finish()
     }
 }
 
@@ -400,6 +482,19 @@ fn open_column(file: &h5::H5File, name: &str) -> Result<h5::H5Dataset> {
     match ds.datatype().map_err(h5err(name))? {
         h5::DatatypeMessage::FixedPoint { .. } => {}
         other => return Err(bad(format!("{name} holds {other:?}; expected integers"))),
+    }
+    // A chunk is decoded whole, in memory the size the file declares.
+    if let Some(dims) = ds.chunk_dims() {
+        let bytes = dims
+            .iter()
+            .try_fold(ds.element_size() as u64, |b, &d| b.checked_mul(d as u64));
+        if bytes.is_none_or(|b| b > crate::limits::MAX_CHUNK_BYTES) {
+            return Err(bad(format!(
+                "{name} declares chunks of {dims:?} values, more than the {} MiB a chunk may \
+                 take",
+                crate::limits::MAX_CHUNK_BYTES >> 20
+            )));
+        }
     }
     let filters = ds.filters().map_err(h5err(name))?;
     if let Some(f) = filters.iter().find(|f| !READABLE_FILTERS.contains(&f.id)) {

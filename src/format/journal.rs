@@ -3,13 +3,14 @@
 //! cut, a full disk) leaves what it flushed in a form `v2ce repair` turns into the file asked
 //! for ([`crate::repair`]).
 //!
-//! The journal of `out.npz` is `out.npz.v2ce-journal`: a 16-byte header (`V2CEJRNL`, version
-//! u16 = 1, sensor width u16, height u16, record size u16 = 13), then one record per event:
-//! time i64, x u16, y u16, polarity u8 (1 = ON), little-endian. The `.npz` encoder keeps its
-//! records there until its end and copies them into the archive (the toolbox's record layout is
-//! the same bytes while x and y fit `int16`); the `.h5` encoder writes each event to both.
-//! The journal is removed once the output is complete; an encoder dropped before that leaves
-//! it.
+//! The journal of `out.npz` is `out.npz.v2ce-journal`: a 384-byte head (`V2CEJRNL`, version
+//! u16 = 2, sensor width u16, height u16, record size u16 = 13, then zeros), then one record per
+//! event: time i64, x u16, y u16, polarity u8 (1 = ON), little-endian. Version 1 journals (a
+//! 16-byte head) are still read. The `.npz` encoder turns its journal into the archive in place
+//! (the toolbox's record layout is the same bytes while x and y fit `int16`, and the head has
+//! room for the archive's headers, see [`super::npz`]), so a full disk can still be closed
+//! readably; the `.h5` encoder writes each event to both. The journal is removed (or becomes the
+//! `.npz`) once the output is complete; an encoder dropped before that leaves it.
 
 use std::io::{BufReader, BufWriter, Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
@@ -21,12 +22,15 @@ use crate::event::Event;
 /// Bytes per record.
 pub const RECORD: usize = 13;
 
-/// The header's bytes.
-const HEADER: usize = 16;
+/// The head's bytes: the header, then zeros (room for an `.npz` archive's headers).
+pub const HEAD: usize = 384;
+
+/// The header's bytes in version 1, whose records followed it.
+const HEADER_V1: usize = 16;
 
 const MAGIC: &[u8; 8] = b"V2CEJRNL";
 
-const VERSION: u16 = 1;
+const VERSION: u16 = 2;
 
 fn bad(message: impl Into<String>) -> Error {
     Error::invalid("journal", message.into())
@@ -39,10 +43,20 @@ pub fn path_for(output: &Path) -> PathBuf {
     output.with_file_name(name)
 }
 
+/// Whether the journal at `path` is already an `.npz` archive: closed in place by a writer
+/// stopped before it gave the archive its name (see [`super::npz`]).
+pub fn is_archive(path: &Path) -> bool {
+    let mut magic = [0u8; 4];
+    std::fs::File::open(path)
+        .and_then(|mut f| f.read_exact(&mut magic))
+        .is_ok_and(|()| &magic == b"PK\x03\x04")
+}
+
 /// A journal being written.
 pub struct Journal {
     path: PathBuf,
-    out: BufWriter<std::fs::File>,
+    /// `None` once handed over ([`Journal::into_file`]).
+    out: Option<BufWriter<std::fs::File>>,
     count: u64,
     /// Set once the output is complete: the journal is then removed when dropped.
     done: bool,
@@ -52,17 +66,25 @@ impl Journal {
     /// Creates the journal of the output `output`, for a `width x height` sensor.
     pub fn create(output: &Path, width: u16, height: u16) -> Result<Self> {
         let path = path_for(output);
-        let file = std::fs::File::create(&path).map_err(|e| Error::io(&path, e))?;
+        // Read as well: the `.npz` encoder reads its records back to close the archive.
+        let file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(true)
+            .open(&path)
+            .map_err(|e| Error::io(&path, e))?;
         let mut out = BufWriter::with_capacity(1 << 16, file);
-        let mut header = Vec::with_capacity(HEADER);
+        let mut header = Vec::with_capacity(HEAD);
         header.extend_from_slice(MAGIC);
         for v in [VERSION, width, height, RECORD as u16] {
             header.extend_from_slice(&v.to_le_bytes());
         }
+        header.resize(HEAD, 0);
         out.write_all(&header).map_err(|e| Error::io(&path, e))?;
         Ok(Journal {
             path,
-            out,
+            out: Some(out),
             count: 0,
             done: false,
         })
@@ -91,7 +113,7 @@ impl Journal {
             rec[8..10].copy_from_slice(&e.x.to_le_bytes());
             rec[10..12].copy_from_slice(&e.y.to_le_bytes());
             rec[12] = e.on as u8;
-            self.out
+            self.writer()?
                 .write_all(&rec)
                 .map_err(|e| Error::io(&self.path, e))?;
         }
@@ -102,7 +124,33 @@ impl Journal {
     /// Hands what is buffered to the operating system (a process killed later loses none of
     /// it).
     pub fn flush(&mut self) -> Result<()> {
-        self.out.flush().map_err(|e| Error::io(&self.path, e))
+        let path = self.path.clone();
+        self.writer()?.flush().map_err(|e| Error::io(path, e))
+    }
+
+    fn writer(&mut self) -> Result<&mut BufWriter<std::fs::File>> {
+        self.out
+            .as_mut()
+            .ok_or_else(|| bad(format!("{}: already closed", self.path.display())))
+    }
+
+    /// The journal's file, cut after its last whole record, and the records it holds: all
+    /// that was appended where the buffer can still be written, else (a full disk) what of it
+    /// reached the file, the rest dropped unwritten. The journal stays on disk (see
+    /// [`Journal::complete`]); nothing more can be appended.
+    pub fn into_file(&mut self) -> Result<(std::fs::File, u64)> {
+        let out = self.out.take().ok_or_else(|| bad("already closed"))?;
+        let err = |e| Error::io(&self.path, e);
+        let file = match out.into_inner() {
+            Ok(file) => file,
+            Err(e) => e.into_inner().into_parts().0,
+        };
+        let len = file.metadata().map_err(err)?.len();
+        let whole = (len.saturating_sub(HEAD as u64) / RECORD as u64).min(self.count);
+        file.set_len(HEAD as u64 + whole * RECORD as u64)
+            .map_err(err)?;
+        self.count = whole;
+        Ok((file, whole))
     }
 
     /// The records appended so far, from the first (flushes first).
@@ -110,7 +158,7 @@ impl Journal {
         self.flush()?;
         let err = |e| Error::io(&self.path, e);
         let mut file = std::fs::File::open(&self.path).map_err(err)?;
-        file.seek(SeekFrom::Start(HEADER as u64)).map_err(err)?;
+        file.seek(SeekFrom::Start(HEAD as u64)).map_err(err)?;
         Ok(BufReader::with_capacity(
             1 << 16,
             file.take(self.count * RECORD as u64),
@@ -127,8 +175,8 @@ impl Drop for Journal {
     fn drop(&mut self) {
         if self.done {
             let _ = std::fs::remove_file(&self.path);
-        } else {
-            let _ = self.out.flush();
+        } else if let Some(out) = self.out.as_mut() {
+            let _ = out.flush();
         }
     }
 }
@@ -149,7 +197,7 @@ impl Decoder {
     pub fn open(path: &Path) -> Result<Self> {
         let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
         let mut records = BufReader::with_capacity(1 << 16, file);
-        let mut header = [0u8; HEADER];
+        let mut header = [0u8; HEADER_V1];
         records
             .read_exact(&mut header)
             .map_err(|_| bad(format!("{}: shorter than its header", path.display())))?;
@@ -157,14 +205,20 @@ impl Decoder {
         if &header[..8] != MAGIC {
             return Err(bad(format!("{}: not a v2ce journal", path.display())));
         }
-        if u16_at(8) != VERSION || usize::from(u16_at(14)) != RECORD {
+        if !(1..=VERSION).contains(&u16_at(8)) || usize::from(u16_at(14)) != RECORD {
             return Err(bad(format!(
-                "{}: version {} with {}-byte records (this v2ce reads version {VERSION}, \
+                "{}: version {} with {}-byte records (this v2ce reads versions 1 to {VERSION}, \
                  {RECORD}-byte records)",
                 path.display(),
                 u16_at(8),
                 u16_at(14)
             )));
+        }
+        if u16_at(8) >= 2 {
+            let mut rest = [0u8; HEAD - HEADER_V1];
+            records
+                .read_exact(&mut rest)
+                .map_err(|_| bad(format!("{}: shorter than its head", path.display())))?;
         }
         Ok(Decoder {
             path: path.to_path_buf(),
@@ -246,12 +300,30 @@ mod tests {
         // Not a journal; out of order.
         std::fs::write(dir.join("x"), b"V2CEJRN? and more bytes").unwrap();
         assert!(Decoder::open(&dir.join("x")).is_err());
-        let mut swapped = bytes[..HEADER + 2 * RECORD].to_vec();
-        swapped[HEADER..HEADER + 8].copy_from_slice(&1000i64.to_le_bytes());
+        let mut swapped = bytes[..HEAD + 2 * RECORD].to_vec();
+        swapped[HEAD..HEAD + 8].copy_from_slice(&1000i64.to_le_bytes());
         std::fs::write(dir.join("y"), &swapped).unwrap();
         let mut d = Decoder::open(&dir.join("y")).unwrap();
         let e = d.read_events(&mut Vec::new(), 10).unwrap_err().to_string();
         assert!(e.contains("comes before"), "{e}");
+        // Version 1 (a 16-byte head) still reads.
+        let mut v1 = bytes[..HEADER_V1].to_vec();
+        v1[8..10].copy_from_slice(&1u16.to_le_bytes());
+        v1.extend_from_slice(&bytes[HEAD..HEAD + 3 * RECORD]);
+        std::fs::write(dir.join("v1"), &v1).unwrap();
+        assert_eq!(read(&dir.join("v1")), events[..3]);
+        // Closed after a failed write: cut after its last whole record, nothing more taken.
+        let mut j = Journal::create(&out, 640, 480).unwrap();
+        j.append(&events[..10]).unwrap();
+        j.flush().unwrap();
+        let (file, n) = j.into_file().unwrap();
+        assert_eq!(
+            (n, file.metadata().unwrap().len()),
+            (10, (HEAD + 10 * RECORD) as u64)
+        );
+        assert!(j.append(&events[10..11]).is_err());
+        drop((file, j));
+        assert_eq!(read(&path), events[..10]);
         // Complete: removed.
         let mut j = Journal::create(&out, 640, 480).unwrap();
         j.complete();

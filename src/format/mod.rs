@@ -64,6 +64,20 @@ pub trait EventEncoder {
     fn readable_after_flush(&self) -> bool {
         true
     }
+
+    /// After a failed write (a full disk, `ulimit -f`): closes the file readably with what
+    /// reached it, writing no more than the format's closing bytes, and returns the events it
+    /// holds; `None` where the file needs only cutting after its last whole unit, which
+    /// [`create`]'s encoder does itself. The encoder takes no more events.
+    fn salvage(&mut self) -> Result<Option<u64>> {
+        Ok(None)
+    }
+
+    /// After a write failed: the events the file was closed with (see
+    /// [`EventEncoder::salvage`]); `None` before, or where it could not be closed.
+    fn kept(&self) -> Option<u64> {
+        None
+    }
 }
 
 /// Checks what every encoder and sink requires of an event: time at or after `last_t`, and a
@@ -265,33 +279,109 @@ fn open_checked(path: &Path, check_times: bool) -> Result<Box<dyn EventDecoder +
     }))
 }
 
-/// Prefixes an encoder's errors with its file.
+/// An encoder of a file: its errors name the file, it refuses events out of order or off the
+/// sensor (taking those before), and when a write fails it closes the file readably with
+/// what reached it ([`EventEncoder::salvage`], or cut after its last whole unit).
 struct FileEncoder {
     path: PathBuf,
-    inner: Box<dyn EventEncoder + Send>,
+    /// `None` once a write failed.
+    inner: Option<Box<dyn EventEncoder + Send>>,
+    seal: Seal,
+    size: (u16, u16),
+    last_t: i64,
+    kept: Option<u64>,
+}
+
+impl FileEncoder {
+    fn inner(&mut self) -> Result<&mut Box<dyn EventEncoder + Send>> {
+        let path = &self.path;
+        self.inner
+            .as_mut()
+            .ok_or_else(|| Error::format(path, "an earlier write failed"))
+    }
+
+    /// `e` from the encoder: closes the file with what reached it, and says so.
+    fn failed(&mut self, e: Error) -> Error {
+        let Some(mut inner) = self.inner.take() else {
+            return e;
+        };
+        // No more writes through the encoder's buffer, positioned past the cut.
+        self.seal.seal();
+        let kept = match inner.salvage() {
+            Ok(Some(n)) => Ok(n),
+            Ok(None) => {
+                drop(inner);
+                crate::repair::cut_in_place(&self.path)
+            }
+            Err(why) => Err(why),
+        };
+        let e = e.to_string();
+        let e = e
+            .strip_prefix(&format!("{}: ", self.path.display()))
+            .unwrap_or(&e);
+        match kept {
+            Ok(n) => {
+                self.kept = Some(n);
+                Error::format(
+                    &self.path,
+                    format!(
+                        "{e}; {} was closed readably with the {n} events that reached it",
+                        self.path.display()
+                    ),
+                )
+            }
+            Err(why) => Error::format(
+                &self.path,
+                format!("{e}; and it could not be closed readably ({why})"),
+            ),
+        }
+    }
 }
 
 impl EventEncoder for FileEncoder {
     fn write(&mut self, events: &[Event]) -> Result<()> {
-        self.inner
-            .write(events)
-            .map_err(|e| Error::format(&self.path, e.to_string()))
+        let (w, h) = self.size;
+        let mut valid = events.len();
+        let mut refused = Ok(());
+        for (i, e) in events.iter().enumerate() {
+            if let Err(why) = check_event(e, self.last_t, w, h) {
+                refused = Err(Error::format(&self.path, why.to_string()));
+                valid = i;
+                break;
+            }
+            self.last_t = e.t;
+        }
+        let written = self.inner()?.write(&events[..valid]);
+        written.map_err(|e| self.failed(e))?;
+        refused
     }
 
     fn finish(&mut self) -> Result<()> {
-        self.inner
-            .finish()
-            .map_err(|e| Error::format(&self.path, e.to_string()))
+        let finished = self.inner()?.finish();
+        finished.map_err(|e| self.failed(e))
     }
 
     fn flush(&mut self) -> Result<()> {
-        self.inner
-            .flush()
-            .map_err(|e| Error::format(&self.path, e.to_string()))
+        let flushed = self.inner()?.flush();
+        flushed.map_err(|e| self.failed(e))
     }
 
     fn readable_after_flush(&self) -> bool {
-        self.inner.readable_after_flush()
+        self.inner
+            .as_ref()
+            .is_none_or(|inner| inner.readable_after_flush())
+    }
+
+    /// Closes the file with what reached it (see [`EventEncoder::salvage`]), once.
+    fn salvage(&mut self) -> Result<Option<u64>> {
+        if self.inner.is_some() {
+            let _ = self.failed(Error::Run("closed after a failed write".into()));
+        }
+        Ok(self.kept)
+    }
+
+    fn kept(&self) -> Option<u64> {
+        self.kept
     }
 }
 
@@ -302,21 +392,49 @@ pub fn create(
     width: u16,
     height: u16,
 ) -> Result<Box<dyn EventEncoder + Send>> {
-    create_sealable(path, format, width, height).map(|(encoder, _)| encoder)
+    let seal = Seal::default();
+    let buffered = || -> Result<BufWriter<SealableFile>> {
+        let file = std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
+        let file = SealableFile {
+            file,
+            sealed: seal.clone(),
+        };
+        Ok(BufWriter::with_capacity(1 << 16, file))
+    };
+    let wrap = |e: Error| Error::format(path, e.to_string());
+    let inner: Box<dyn EventEncoder + Send> = match format {
+        Format::Aedat4(c) => {
+            Box::new(aedat4::Writer::new(buffered()?, width, height, c).map_err(wrap)?)
+        }
+        Format::Evt2 => Box::new(evt2::Encoder::new(buffered()?, width, height).map_err(wrap)?),
+        Format::Evt3 => Box::new(evt3::Encoder::new(buffered()?, width, height).map_err(wrap)?),
+        Format::Csv => Box::new(csv::Encoder::new(buffered()?).map_err(wrap)?),
+        Format::Npz => Box::new(npz::Encoder::new(path, width, height).map_err(wrap)?),
+        // The HDF5 library creates the file itself.
+        Format::Hdf5 => Box::new(hdf5::Encoder::create(path, width, height).map_err(wrap)?),
+    };
+    Ok(Box::new(FileEncoder {
+        path: path.to_path_buf(),
+        inner: Some(inner),
+        seal,
+        size: (width, height),
+        last_t: i64::MIN,
+        kept: None,
+    }))
 }
 
 /// The file an encoder writes through: its owner can [`Seal`] it, after which every write and
 /// seek fails. A file cut back after a failed write (a full disk) is sealed first, so the
 /// encoder's buffered writer, whose position lies past the cut, can never write there later
 /// (its flush on drop would leave a hole of zero bytes that readers take for events).
-pub struct SealableFile {
+struct SealableFile {
     file: std::fs::File,
     sealed: Seal,
 }
 
 /// Seals a [`SealableFile`] (shared with it).
 #[derive(Debug, Clone, Default)]
-pub struct Seal(std::sync::Arc<std::sync::atomic::AtomicBool>);
+struct Seal(std::sync::Arc<std::sync::atomic::AtomicBool>);
 
 impl Seal {
     /// From now on the file takes no write and no seek.
@@ -351,42 +469,6 @@ impl std::io::Seek for SealableFile {
         self.sealed.check()?;
         self.file.seek(pos)
     }
-}
-
-/// [`create`], with the [`Seal`] of the file the encoder writes (HDF5, whose library opens
-/// the file itself, has none that takes effect: it is whole only at its end anyway).
-pub fn create_sealable(
-    path: &Path,
-    format: Format,
-    width: u16,
-    height: u16,
-) -> Result<(Box<dyn EventEncoder + Send>, Seal)> {
-    let seal = Seal::default();
-    let buffered = || -> Result<BufWriter<SealableFile>> {
-        let file = std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
-        let file = SealableFile {
-            file,
-            sealed: seal.clone(),
-        };
-        Ok(BufWriter::with_capacity(1 << 16, file))
-    };
-    let wrap = |e: Error| Error::format(path, e.to_string());
-    let inner: Box<dyn EventEncoder + Send> = match format {
-        Format::Aedat4(c) => {
-            Box::new(aedat4::Writer::new(buffered()?, width, height, c).map_err(wrap)?)
-        }
-        Format::Evt2 => Box::new(evt2::Encoder::new(buffered()?, width, height).map_err(wrap)?),
-        Format::Evt3 => Box::new(evt3::Encoder::new(buffered()?, width, height).map_err(wrap)?),
-        Format::Csv => Box::new(csv::Encoder::new(buffered()?).map_err(wrap)?),
-        Format::Npz => Box::new(npz::Encoder::new(buffered()?, path, width, height).map_err(wrap)?),
-        // The HDF5 library creates the file itself.
-        Format::Hdf5 => Box::new(hdf5::Encoder::create(path, width, height).map_err(wrap)?),
-    };
-    let encoder = Box::new(FileEncoder {
-        path: path.to_path_buf(),
-        inner,
-    });
-    Ok((encoder, seal))
 }
 
 /// An output written under a temporary name (`out.csv` is written as `out.partial.csv`, so
@@ -492,7 +574,25 @@ fn extension(path: &Path) -> String {
 pub fn read_events(path: &Path) -> Result<Recording> {
     let mut decoder = open(path)?;
     let mut events = Vec::new();
-    while decoder.read_events(&mut events, 1 << 16)? > 0 {}
+    loop {
+        // Memory for what the file holds (or claims: a header's count of events never
+        // written) is checked as it grows: a clear error, not an abort.
+        let grow = events.len().max(1 << 16);
+        if events.capacity() - events.len() < 1 << 16 && !crate::limits::room_for(&mut events, grow)
+        {
+            return Err(Error::format(
+                path,
+                format!(
+                    "its events need more memory than this machine has left ({} read so far); \
+                     commands that stream (transcode, info) read it a piece at a time",
+                    events.len()
+                ),
+            ));
+        }
+        if decoder.read_events(&mut events, 1 << 16)? == 0 {
+            break;
+        }
+    }
     Ok(Recording::new(events, decoder.size()))
 }
 

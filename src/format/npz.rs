@@ -27,9 +27,10 @@ fn bad(message: impl Into<String>) -> Error {
     Error::invalid("NPZ", message.into())
 }
 
-/// The `.npy` header of the event records for `n` records.
+/// The `.npy` header of the event records for `n` records: 256 bytes, so that with the zip
+/// entry's local header it fills the journal's head.
 fn records_header(n: u64) -> Vec<u8> {
-    npy_header(DESCR, &format!("({n},)"), 0)
+    npy_header(DESCR, &format!("({n},)"), 256)
 }
 
 /// A `.npy` 1.0 header for an array of type `descr` (NumPy's spelling, quoted, e.g. `'<f4'`)
@@ -97,26 +98,37 @@ pub fn write_arrays(path: &Path, arrays: &[Array], compressed: bool) -> Result<(
     std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
 }
 
-/// Writes the toolbox's `.npz` to `out` (see the module docs).
-pub struct Encoder<W: Write + Seek> {
-    out: Option<W>,
+/// Writes the toolbox's `.npz` (see the module docs).
+pub struct Encoder {
     journal: Journal,
+    path: std::path::PathBuf,
     last_t: i64,
 }
 
-impl<W: Write + Seek> Encoder<W> {
-    /// An encoder writing to `out` (the file `path`), keeping its records in `path`'s journal
-    /// ([`super::journal`]) until the end; `width x height` is the sensor, for the journal.
-    pub fn new(out: W, path: &Path, width: u16, height: u16) -> Result<Self> {
+impl Encoder {
+    /// An encoder of the file `path` (created empty now, replaced by the archive at the end),
+    /// keeping its records in `path`'s journal ([`super::journal`]) until then; `width x
+    /// height` is the sensor, for the journal.
+    pub fn new(path: &Path, width: u16, height: u16) -> Result<Self> {
+        std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
         Ok(Encoder {
-            out: Some(out),
             journal: Journal::create(path, width, height)?,
+            path: path.to_path_buf(),
             last_t: i64::MIN,
         })
     }
+
+    /// After a failed write (a full disk): the archive made from the records that reached the
+    /// journal, in place (it needs a few hundred bytes more, found by dropping the last records
+    /// where the disk has none). Returns the events the archive holds.
+    fn close_after_failure(&mut self) -> Result<u64> {
+        let (file, count) = self.journal.into_file()?;
+        archive_in_place(file, self.journal.path(), &self.path, count)
+            .inspect(|_| self.journal.complete())
+    }
 }
 
-impl<W: Write + Seek> EventEncoder for Encoder<W> {
+impl EventEncoder for Encoder {
     fn write(&mut self, events: &[Event]) -> Result<()> {
         // The events before one refused are taken, as by every other encoder.
         let mut refused = Ok(());
@@ -143,33 +155,168 @@ impl<W: Write + Seek> EventEncoder for Encoder<W> {
         self.journal.flush()
     }
 
-    /// Written whole only at the end (the archive's or the file's index comes last); until
-    /// then `v2ce repair` makes the file from its journal.
+    fn salvage(&mut self) -> Result<Option<u64>> {
+        self.close_after_failure().map(Some)
+    }
+
+    /// Written whole only at the end (the archive's index comes last); until then `v2ce
+    /// repair` makes the file from its journal.
     fn readable_after_flush(&self) -> bool {
         false
     }
 
     fn finish(&mut self) -> Result<()> {
-        let Some(out) = self.out.take() else {
-            return Err(bad("finished twice"));
-        };
-        let count = self.journal.len();
-        let mut records = self.journal.records()?;
-        let mut zip = zip::ZipWriter::new(out);
-        let options = zip::write::SimpleFileOptions::default()
-            .compression_method(zip::CompressionMethod::Stored)
-            .large_file(count * RECORD as u64 > u32::MAX as u64 / 2);
-        let zerr = |e: zip::result::ZipError| bad(e.to_string());
-        zip.start_file(format!("{ARRAY}.npy"), options)
-            .map_err(zerr)?;
-        zip.write_all(&records_header(count))
-            .map_err(|e| bad(e.to_string()))?;
-        std::io::copy(&mut records, &mut zip).map_err(|e| bad(e.to_string()))?;
-        let mut out = zip.finish().map_err(zerr)?;
-        out.flush().map_err(|e| bad(e.to_string()))?;
+        let appended = self.journal.len();
+        let (file, count) = self.journal.into_file()?;
+        let kept = archive_in_place(file, self.journal.path(), &self.path, count)?;
         self.journal.complete();
+        if kept != appended {
+            return Err(Error::Run(format!(
+                "{}: the disk took {kept} of the {appended} events",
+                self.path.display()
+            )));
+        }
         Ok(())
     }
+}
+
+/// The zip entry's name.
+const ENTRY: &str = "event_stream.npy";
+
+/// A zip extra field of padding (the id zip aligners use), so the records start at the end
+/// of the journal's head.
+const PADDING_ID: u16 = 0xD935;
+
+/// Makes the archive of the journal `file` (at `journal`, `count` whole records after its
+/// head) in place: the head becomes the zip entry's local header and the `.npy` header, the
+/// central directory goes after the records, and the file is renamed `target`. Where the disk
+/// has no room for the directory, the last records are dropped until it fits. Returns the
+/// events the archive holds.
+fn archive_in_place(
+    mut file: std::fs::File,
+    journal: &Path,
+    target: &Path,
+    mut count: u64,
+) -> Result<u64> {
+    use std::io::SeekFrom;
+    let err = |e| Error::io(journal, e);
+    let head = super::journal::HEAD as u64;
+    let rec = RECORD as u64;
+    let mut tries = 0;
+    loop {
+        file.set_len(head + count * rec).map_err(err)?;
+        let mut crc = crc32fast::Hasher::new();
+        let npy = records_header(count);
+        crc.update(&npy);
+        file.seek(SeekFrom::Start(head)).map_err(err)?;
+        let mut left = count * rec;
+        let mut buf = vec![0u8; 1 << 20];
+        while left > 0 {
+            let n = left.min(buf.len() as u64) as usize;
+            file.read_exact(&mut buf[..n]).map_err(err)?;
+            crc.update(&buf[..n]);
+            left -= n as u64;
+        }
+        let (local, directory) = zip_records(crc.finalize(), count, &npy);
+        let written = file
+            .write_all(&directory)
+            .and_then(|()| file.seek(SeekFrom::Start(0)).map(|_| ()))
+            .and_then(|()| file.write_all(&local))
+            .and_then(|()| file.sync_data());
+        match written {
+            Ok(()) => break,
+            // No room for the directory: fewer records (each try frees more).
+            Err(e) if tries < 8 && count > 0 => {
+                tracing::debug!("{}: {e}; dropping records to close it", journal.display());
+                tries += 1;
+                count = count.saturating_sub(((directory.len() as u64).div_ceil(rec)) << tries);
+            }
+            Err(e) => return Err(err(e)),
+        }
+    }
+    drop(file);
+    std::fs::rename(journal, target).map_err(|e| Error::io(target, e))?;
+    Ok(count)
+}
+
+/// The local header (with the `.npy` header `npy` after it, filling the journal's head) and
+/// the central directory (with its end records) of a stored zip entry of `count` records whose
+/// CRC-32 is `crc`. Zip64 fields where sizes or offsets pass 4 GiB.
+fn zip_records(crc: u32, count: u64, npy: &[u8]) -> (Vec<u8>, Vec<u8>) {
+    let head = super::journal::HEAD as u64;
+    let size = npy.len() as u64 + count * RECORD as u64;
+    let directory_at = head + count * RECORD as u64;
+    let zip64 = size >= u32::MAX as u64 || directory_at >= u32::MAX as u64;
+    let version: u16 = if zip64 { 45 } else { 20 };
+    let small = |v: u64| if zip64 { u32::MAX } else { v as u32 };
+    // DOS date 1980-01-01, time 00:00 (as NumPy's archives of no date).
+    let (time, date): (u16, u16) = (0, (1 << 5) | 1);
+    let mut zip64_extra = Vec::new();
+    if zip64 {
+        zip64_extra.extend_from_slice(&1u16.to_le_bytes());
+        zip64_extra.extend_from_slice(&16u16.to_le_bytes());
+        zip64_extra.extend_from_slice(&size.to_le_bytes());
+        zip64_extra.extend_from_slice(&size.to_le_bytes());
+    }
+    let fixed = 30 + ENTRY.len() + zip64_extra.len() + 4 + npy.len();
+    let padding = (head as usize).saturating_sub(fixed);
+    let mut local = Vec::with_capacity(head as usize);
+    local.extend_from_slice(&0x0403_4b50u32.to_le_bytes());
+    for v in [version, 0, 0, time, date] {
+        local.extend_from_slice(&v.to_le_bytes());
+    }
+    local.extend_from_slice(&crc.to_le_bytes());
+    local.extend_from_slice(&small(size).to_le_bytes());
+    local.extend_from_slice(&small(size).to_le_bytes());
+    local.extend_from_slice(&(ENTRY.len() as u16).to_le_bytes());
+    local.extend_from_slice(&((zip64_extra.len() + 4 + padding) as u16).to_le_bytes());
+    local.extend_from_slice(ENTRY.as_bytes());
+    local.extend_from_slice(&zip64_extra);
+    local.extend_from_slice(&PADDING_ID.to_le_bytes());
+    local.extend_from_slice(&(padding as u16).to_le_bytes());
+    local.resize(local.len() + padding, 0);
+    local.extend_from_slice(npy);
+
+    let mut central = Vec::new();
+    central.extend_from_slice(&0x0201_4b50u32.to_le_bytes());
+    for v in [version, version, 0, 0, time, date] {
+        central.extend_from_slice(&v.to_le_bytes());
+    }
+    central.extend_from_slice(&crc.to_le_bytes());
+    central.extend_from_slice(&small(size).to_le_bytes());
+    central.extend_from_slice(&small(size).to_le_bytes());
+    central.extend_from_slice(&(ENTRY.len() as u16).to_le_bytes());
+    central.extend_from_slice(&(zip64_extra.len() as u16).to_le_bytes());
+    // Comment length, disk, internal and external attributes (u16, u16, u16, u32), offset 0.
+    central.extend_from_slice(&[0u8; 2 + 2 + 2 + 4 + 4]);
+    central.extend_from_slice(ENTRY.as_bytes());
+    central.extend_from_slice(&zip64_extra);
+    let central_len = central.len() as u64;
+    if zip64 {
+        let end64_at = directory_at + central_len;
+        central.extend_from_slice(&0x0606_4b50u32.to_le_bytes());
+        central.extend_from_slice(&44u64.to_le_bytes());
+        for v in [45u16, 45] {
+            central.extend_from_slice(&v.to_le_bytes());
+        }
+        central.extend_from_slice(&[0u8; 8]);
+        for v in [1u64, 1, central_len, directory_at] {
+            central.extend_from_slice(&v.to_le_bytes());
+        }
+        central.extend_from_slice(&0x0706_4b50u32.to_le_bytes());
+        central.extend_from_slice(&0u32.to_le_bytes());
+        central.extend_from_slice(&end64_at.to_le_bytes());
+        central.extend_from_slice(&1u32.to_le_bytes());
+    }
+    central.extend_from_slice(&0x0605_4b50u32.to_le_bytes());
+    central.extend_from_slice(&[0u8; 4]);
+    let entries: u16 = if zip64 { u16::MAX } else { 1 };
+    central.extend_from_slice(&entries.to_le_bytes());
+    central.extend_from_slice(&entries.to_le_bytes());
+    central.extend_from_slice(&small(central_len).to_le_bytes());
+    central.extend_from_slice(&small(directory_at).to_le_bytes());
+    central.extend_from_slice(&0u16.to_le_bytes());
+    (local, central)
 }
 
 /// Reads the toolbox's `.npz` (the `event_stream` array; other arrays are ignored).
@@ -373,8 +520,7 @@ mod tests {
             .map(|i| Event::new(i * 37 - 500, (i % 300) as u16, (i % 200) as u16, i % 3 == 0))
             .collect();
         {
-            let file = std::fs::File::create(&path).unwrap();
-            let mut enc = Encoder::new(BufWriter::new(file), &path, 300, 200).unwrap();
+            let mut enc = Encoder::new(&path, 300, 200).unwrap();
             enc.write(&events[..400]).unwrap();
             enc.write(&events[400..]).unwrap();
             enc.finish().unwrap();

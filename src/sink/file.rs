@@ -106,8 +106,6 @@ pub struct FileSink {
     path: PathBuf,
     format: Format,
     encoder: Box<dyn EventEncoder + Send>,
-    /// Closes the encoder's file to every write once a write failed (see [`format::Seal`]).
-    seal: format::Seal,
     stats: SinkStats,
     /// Flush at most this long after the last flush (the daemon's outputs; `convert` writes
     /// whole packets only, so its files do not depend on timing).
@@ -115,35 +113,32 @@ pub struct FileSink {
     /// `None` until the first flush, which comes with the first events (so a file killed
     /// after its first batch already has its header and that batch on disk).
     last_flush: Option<Instant>,
-    /// A second handle on the file, to sync what the encoder wrote (periodic flushes only).
-    sync: Option<std::fs::File>,
+    /// Whether to sync what the encoder wrote (periodic flushes only), through a handle opened
+    /// for it each time: one held open would keep a file the encoder replaces after a failed
+    /// write (HDF5) from freeing its room.
+    sync: bool,
     /// Events the encoder took since the last flush: counted as sent only once a flush (or the
     /// end) has put them in the file, so a full disk cannot have them reported sent.
     pending: u64,
-    /// The file's length after the last flush that put every sent event in it: a write that
-    /// fails later (a full disk, `ulimit -f`) is cut back to it, so the file holds exactly the
-    /// events counted as sent, and no part of an event.
-    good_len: Option<u64>,
-    /// A write failed: the file is cut back and the encoder, which may still hold part of the
-    /// failed batch, is not used again.
+    /// A write failed (a full disk, `ulimit -f`): the encoder closed the file with what
+    /// reached it ([`EventEncoder::salvage`]), which is what counts as sent, and is not used
+    /// again.
     failed: bool,
 }
 
 impl FileSink {
     /// Creates `path` in `format` for a `width x height` sensor.
     pub fn create(path: &Path, format: Format, width: u16, height: u16) -> Result<Self> {
-        let (encoder, seal) = format::create_sealable(path, format, width, height)?;
+        let encoder = format::create(path, format, width, height)?;
         Ok(FileSink {
             path: path.to_path_buf(),
             format,
             encoder,
-            seal,
             stats: SinkStats::default(),
             flush_every: None,
             last_flush: None,
-            sync: None,
+            sync: false,
             pending: 0,
-            good_len: None,
             failed: false,
         })
     }
@@ -152,12 +147,8 @@ impl FileSink {
     /// `period` or more after the last flush.
     pub fn with_flush_period(mut self, period: Duration) -> Self {
         self.flush_every = Some(period);
-        // Syncing through any descriptor of the file puts its data on the disk; writing, to cut
-        // a failed write back (see `good_len`).
-        self.sync = std::fs::OpenOptions::new()
-            .write(true)
-            .open(&self.path)
-            .ok();
+        // Syncing through any descriptor of the file puts its data on the disk.
+        self.sync = true;
         self
     }
 
@@ -170,27 +161,19 @@ impl FileSink {
         if self.encoder.readable_after_flush() {
             // In the file (the kernel has it: a killed process loses none of it).
             self.stats.events_sent += std::mem::take(&mut self.pending);
-            self.good_len = self
-                .sync
-                .as_ref()
-                .and_then(|f| f.metadata().ok())
-                .map(|m| m.len());
         }
         Ok(())
     }
 
-    /// After a failed write: the file cut back to its length at the last good flush (see
-    /// `good_len`), where it can be.
+    /// After a failed write: the file closed with what reached it (see
+    /// [`EventEncoder::salvage`]), which is then what counts as sent.
     fn cut_back(&mut self) {
-        // First no more writes through the encoder, whose position is past the cut.
-        self.seal.seal();
-        if let (Some(file), Some(len)) = (&self.sync, self.good_len) {
-            if let Err(e) = file.set_len(len) {
-                tracing::warn!(
-                    "{}: could not cut a failed write back: {e}",
-                    self.path.display()
-                );
-            }
+        match self.encoder.salvage() {
+            Ok(Some(kept)) => self.stats.events_sent = kept,
+            Ok(None) | Err(_) => tracing::warn!(
+                "{}: could not be closed readably after the failed write",
+                self.path.display()
+            ),
         }
     }
 
@@ -209,8 +192,8 @@ impl FileSink {
 
     fn flush_to_disk(&mut self) -> Result<()> {
         self.flush_into_file()?;
-        if let Some(file) = &self.sync {
-            file.sync_data().map_err(|e| Error::io(&self.path, e))?;
+        if self.sync {
+            self.sync_data()?;
             if self.last_flush.is_none() {
                 let dir = match self.path.parent() {
                     Some(p) if !p.as_os_str().is_empty() => p,
@@ -223,6 +206,15 @@ impl FileSink {
             }
         }
         Ok(())
+    }
+}
+
+impl FileSink {
+    /// Puts what the file holds on the disk.
+    fn sync_data(&self) -> Result<()> {
+        std::fs::File::open(&self.path)
+            .and_then(|f| f.sync_data())
+            .map_err(|e| Error::io(&self.path, e))
     }
 }
 
@@ -290,8 +282,8 @@ impl FileSink {
     fn finish_file(&mut self) -> Result<()> {
         self.encoder.finish()?;
         self.stats.events_sent += std::mem::take(&mut self.pending);
-        if let Some(file) = &self.sync {
-            file.sync_data().map_err(|e| Error::io(&self.path, e))?;
+        if self.sync {
+            self.sync_data()?;
         }
         self.stats.bytes_sent = std::fs::metadata(&self.path).map_or(0, |m| m.len());
         Ok(())

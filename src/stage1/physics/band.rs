@@ -87,6 +87,8 @@ pub(super) struct Band<'a> {
     settled: &'a mut [bool],
     scratch: &'a mut Scratch,
     stats: PhysicsStats,
+    /// Crossings memory could not hold.
+    unheld: u64,
 }
 
 /// A frame's work below this many pixel steps stays on one thread: handing it out costs more.
@@ -148,6 +150,7 @@ impl PhysicsSim {
             scratch,
             spill,
             stats,
+            unheld,
             ..
         } = self;
         let shared = Shared {
@@ -205,6 +208,7 @@ impl PhysicsSim {
                     settled: settled.next()?,
                     scratch,
                     stats: PhysicsStats::default(),
+                    unheld: 0,
                 };
                 Some((band, spill))
             })
@@ -214,7 +218,12 @@ impl PhysicsSim {
         });
         for (band, events) in work {
             stats.add(band.stats);
-            out.append(events);
+            *unheld += band.unheld;
+            if crate::limits::room_for(out, events.len()) {
+                out.append(events);
+            } else {
+                *unheld += events.len() as u64;
+            }
         }
     }
 }
@@ -296,6 +305,7 @@ impl Band<'_> {
                     fired: &mut *self.fired,
                     last_event: &mut *self.last_event,
                     refractory_drops: &mut self.stats.refractory_drops,
+                    unheld: &mut self.unheld,
                 };
                 let span = (pass.t0, pass.t1);
                 view.crossings(&slow, span, &pass.filter, &mut self.scratch.lanes, out);

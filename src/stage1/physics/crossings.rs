@@ -250,6 +250,8 @@ pub(super) struct Slow<'a, 'b> {
     pub fired: &'b mut [u32],
     pub last_event: &'b mut [i64],
     pub refractory_drops: &'b mut u64,
+    /// Crossings memory could not hold (see [`crate::limits::room_for_one`]).
+    pub unheld: &'b mut u64,
 }
 
 impl Slow<'_, '_> {
@@ -423,6 +425,10 @@ impl Slow<'_, '_> {
                 continue;
             }
             s.last = te;
+            if !crate::limits::room_for_one(out) {
+                *self.unheld += 1;
+                continue;
+            }
             out.push(Event::new(te, s.x, s.row, polarity));
             self.redraw_threshold(s, polarity);
         }

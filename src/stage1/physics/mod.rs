@@ -153,6 +153,8 @@ pub struct PhysicsSim {
     scratch: Vec<band::Scratch>,
     /// Each band's events, before they join the frame's.
     spill: Vec<Vec<Event>>,
+    /// Events of the frame being stepped that memory could not hold: the frame is refused.
+    unheld: u64,
     stats: PhysicsStats,
 }
 
@@ -332,6 +334,7 @@ impl PhysicsSim {
             unspent: None,
             scratch: Vec::new(),
             spill: Vec::new(),
+            unheld: 0,
             width,
             height,
             seed,
@@ -520,6 +523,19 @@ impl PhysicsSim {
         self.noise(t0, frame, out);
         self.prev_t = Some(frame.t);
         self.stats.frames += 1;
+        if std::mem::take(&mut self.unheld) > 0 {
+            let held = out.len() - start;
+            out.truncate(start);
+            return Err(Error::invalid(
+                "frame",
+                format!(
+                    "the frame at {} us produced more events than memory holds ({held} held, \
+                     the rest refused): lower its size, the frame rate's gaps or the \
+                     thresholds' sensitivity",
+                    frame.t
+                ),
+            ));
+        }
         sort_events(&mut out[start..]);
         let spent = (started.elapsed().as_secs_f64(), frame.t - t0, stepped);
         match &mut self.motion {
@@ -755,7 +771,7 @@ impl PhysicsSim {
         );
         let mut emit = |i: usize, on: bool, rng: &mut Xoshiro256PlusPlus, last: &mut [i64]| {
             let t = rng.gen_range(t0 + 1..=frame.t);
-            if ((t - last[i]) as f64) >= cfg.refractory_us {
+            if ((t - last[i]) as f64) >= cfg.refractory_us && crate::limits::room_for_one(out) {
                 last[i] = last[i].max(t);
                 out.push(Event::new(t, (i % w) as u16, (i / w) as u16, on));
             }
