@@ -132,8 +132,18 @@ pub fn repair(path: &Path, output: Option<&Path>) -> Result<Report> {
         Some(out) => {
             let partial = format::PartialOutput::new(out);
             copy_prefix(path, partial.writing(), kept)
+                .map_err(|e| close_copy(e, partial.writing(), format))
                 .and_then(|()| partial.commit())
                 .map_err(|e| partial.explain(e))?;
+        }
+    }
+    if matches!(format, Format::Aedat4(_)) {
+        // Cut before the data table a finished file ended with: readers must not look for it.
+        let header = format::aedat4::Reader::new_file(std::io::BufReader::new(
+            std::fs::File::open(target).map_err(|e| Error::io(target, e))?,
+        ))?;
+        if header.header().data_table_position >= 0 {
+            format::aedat4::forget_data_table(target)?;
         }
     }
     let events = count(target)?;
@@ -151,8 +161,9 @@ pub fn repair(path: &Path, output: Option<&Path>) -> Result<Report> {
 fn whole(path: &Path, output: Option<&Path>, events: u64) -> Result<Report> {
     if let Some(out) = output {
         let partial = format::PartialOutput::new(out);
+        let format = Format::for_output(path, None, format::Compression::default())?;
         std::fs::copy(path, partial.writing())
-            .map_err(|e| Error::io(out, e))
+            .map_err(|e| close_copy(Error::io(out, e), partial.writing(), format))
             .and_then(|_| partial.commit())
             .map_err(|e| partial.explain(e))?;
     }
@@ -161,6 +172,27 @@ fn whole(path: &Path, output: Option<&Path>, events: u64) -> Result<Report> {
         events,
         action: Action::Whole,
     })
+}
+
+/// `e`, a copy to `partial` (in `format`) that failed (a full disk): the copy closed readably
+/// with what reached it (cut after its last whole unit), or removed where that cannot be
+/// (`.npz`, `.h5`: whole only complete), and said.
+fn close_copy(e: Error, partial: &Path, format: Format) -> Error {
+    if matches!(format, Format::Npz | Format::Hdf5) {
+        let _ = std::fs::remove_file(partial);
+        return Error::Run(format!(
+            "{e}; the copy was removed (whole only when complete)"
+        ));
+    }
+    match cut_in_place(partial) {
+        Ok(n) => Error::Run(format!(
+            "{e}; {} was closed readably with the {n} events that reached it",
+            partial.display()
+        )),
+        Err(why) => Error::Run(format!(
+            "{e}; and the copy could not be closed readably ({why})"
+        )),
+    }
 }
 
 /// Cuts `path` (`.csv`, `.raw`, `.aedat4`) after its last whole unit in place, as [`repair`]
@@ -234,14 +266,36 @@ fn whole_prefix(path: &Path, format: Format) -> Result<u64> {
     let wrap = |e: Error| Error::format(path, e.to_string());
     match format {
         Format::Aedat4(_) => {
-            let mut r = format::aedat4::Reader::new_file(reader()?).map_err(wrap)?;
-            while r.next_item().map_err(wrap)?.is_some() {}
-            // A finished file ends with its data table, after the packets.
-            Ok(if r.header().data_table_position >= 0 {
-                len
-            } else {
-                r.whole_bytes()
-            })
+            let scan = || -> Result<(bool, u64)> {
+                let mut r = format::aedat4::Reader::new_file(reader()?).map_err(wrap)?;
+                let finished = r.header().data_table_position >= 0;
+                let read = (|| {
+                    while r.next_item()?.is_some() {}
+                    Ok::<_, Error>(())
+                })();
+                match read {
+                    // A finished file ends with its data table, after the packets.
+                    Ok(()) if finished => Ok((true, len)),
+                    Ok(()) => Ok((false, r.whole_bytes())),
+                    // A finished file cut short (a copy on a full disk): its table is lost.
+                    Err(_) if finished => Ok((true, u64::MAX)),
+                    Err(e) => Err(wrap(e)),
+                }
+            };
+            match scan()? {
+                (true, u64::MAX) => {
+                    // Read as an unfinished file (up to its last whole packet), on a copy of
+                    // the header whose table position is forgotten.
+                    let mut file = reader()?;
+                    let mut magic = [0u8; format::aedat4::MAGIC.len()];
+                    file.read_exact(&mut magic)
+                        .map_err(|e| Error::io(path, e))?;
+                    let mut r = format::aedat4::Reader::new_stream(file).map_err(wrap)?;
+                    while r.next_item().map_err(wrap)?.is_some() {}
+                    Ok(r.whole_bytes() + magic.len() as u64)
+                }
+                (_, kept) => Ok(kept),
+            }
         }
         Format::Evt2 | Format::Evt3 => {
             // The header says which words follow (the extension does not).

@@ -191,6 +191,66 @@ fn closed_with(stderr: &str) -> Option<(PathBuf, u64)> {
     Some((PathBuf::from(path), n))
 }
 
+/// Checks what a command that failed on the full disk `disk` said (`err`): the file it names
+/// is on that disk and reads back, with our decoder and (with `py`) the independent
+/// `readers`, holding exactly the count said; returns the count.
+fn check_closed(
+    case: &str,
+    err: &str,
+    disk: &Path,
+    py: Option<&Path>,
+    work: &Path,
+    evt: Option<&str>,
+    readers: &[&str],
+) -> u64 {
+    let (path, kept) = closed_with(err).unwrap_or_else(|| panic!("{case}: no count said: {err}"));
+    assert!(path.starts_with(disk), "{case}: {}", path.display());
+    assert!(kept > 0, "{case}: {err}");
+    let back = v2ce::format::read_events(&path)
+        .unwrap_or_else(|e| panic!("{case}: {} does not read back: {e}", path.display()));
+    assert_eq!(back.events.len() as u64, kept, "{case}: {err}");
+    assert!(
+        !v2ce::format::journal::path_for(&path).exists(),
+        "{case}: a journal left beside the closed file"
+    );
+    if path.extension().is_some_and(|e| e == "csv") {
+        assert!(
+            !std::fs::read(&path).unwrap().contains(&0),
+            "{case}: zero bytes"
+        );
+    }
+    if let Some(py) = py {
+        let expected = work.join("expected.csv");
+        v2ce::format::csv::write(&expected, back.events.events()).unwrap();
+        let first = back.events.events().first().map_or(0, |e| e.t);
+        let evt = match evt {
+            Some("2") => Some(v2ce::format::raw::Evt::Evt2),
+            Some("3") => Some(v2ce::format::raw::Evt::Evt3),
+            _ => None,
+        };
+        let offset = evt.map_or(0, |evt| v2ce::format::raw::time_offset_for(evt, first));
+        for reader in readers {
+            let out = Command::new(py)
+                .arg(common::script())
+                .args(["file", reader])
+                .arg(&path)
+                .arg(&expected)
+                .arg(offset.to_string())
+                .output()
+                .unwrap();
+            assert!(
+                out.status.success(),
+                "{case}: {reader} on {}: {}{}",
+                path.display(),
+                String::from_utf8_lossy(&out.stdout),
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
+    }
+    println!("{case}: {} holds the {kept} events said", path.display());
+    kept
+}
+
 /// A full disk (a 2 MiB tmpfs) under every command that writes events, in every format: the
 /// command says it failed (exit 1; `run` names the output while its UDP output goes on) and
 /// how many events the file was closed with; the file reads back with our decoder and with
@@ -226,7 +286,23 @@ fn a_full_disk_leaves_a_readable_file_holding_what_was_reported() {
         ("npz", None, &["numpy"]),
         ("h5", None, &["h5py"]),
     ] {
-        for command in ["run", "convert", "transcode"] {
+        // The same events as a whole file of this format, for `repair --out` to copy.
+        let whole = work.join(format!("whole.{ext}"));
+        let mut t = v2ce();
+        t.arg("transcode").arg(&source).arg(&whole).arg("--force");
+        if let Some(evt) = evt {
+            t.args(["--evt", evt]);
+        }
+        assert!(t.output().unwrap().status.success());
+        let mut commands = vec!["run", "convert", "transcode"];
+        // A whole .npz or .h5 copied short cannot be read: that copy is removed (and said).
+        if !matches!(ext, "npz" | "h5") {
+            commands.push("repair");
+        }
+        if matches!(ext, "csv" | "aedat4") {
+            commands.push("listen");
+        }
+        for command in commands {
             let case = format!("{command} .{ext} {}", evt.unwrap_or(""));
             for entry in std::fs::read_dir(&disk.0).unwrap() {
                 std::fs::remove_file(entry.unwrap().path()).unwrap();
@@ -254,18 +330,47 @@ fn a_full_disk_leaves_a_readable_file_holding_what_was_reported() {
                     c.args(["convert", "fixture", "--max-frames", "100", "-o"])
                         .arg(&out);
                 }
+                "repair" => {
+                    c.arg("repair").arg(&whole).arg("--out").arg(&out);
+                }
+                "listen" => {
+                    let port = std::net::UdpSocket::bind("127.0.0.1:0")
+                        .and_then(|s| s.local_addr())
+                        .unwrap()
+                        .port();
+                    let address = format!("127.0.0.1:{port}");
+                    c.args(["listen", "--udp", &address, "--idle", "3", "-o"])
+                        .arg(&out);
+                    let listener = c
+                        .stdout(std::process::Stdio::piped())
+                        .stderr(std::process::Stdio::piped())
+                        .spawn()
+                        .unwrap();
+                    std::thread::sleep(std::time::Duration::from_millis(500));
+                    let sent = v2ce()
+                        .args(["run", "--source", "fixture", "--max-frames", "100"])
+                        .args(["--queue-policy", "block", "--udp", &address])
+                        .output()
+                        .unwrap();
+                    assert!(sent.status.success(), "{case}: {sent:?}");
+                    c = Command::new("true");
+                    let done = listener.wait_with_output().unwrap();
+                    let err = String::from_utf8_lossy(&done.stderr).into_owned();
+                    assert_eq!(done.status.code(), Some(1), "{case}: {err}");
+                    check_closed(&case, &err, &disk.0, py.as_deref(), &work, evt, readers);
+                    continue;
+                }
                 _ => {
                     c.arg("transcode").arg(&source).arg(&out);
                 }
             }
-            if let (Some(evt), true) = (evt, command != "run") {
+            if let (Some(evt), true) = (evt, matches!(command, "convert" | "transcode")) {
                 c.args(["--evt", evt]);
             }
             let done = c.output().unwrap();
             let err = String::from_utf8_lossy(&done.stderr);
             assert_eq!(done.status.code(), Some(1), "{case}: {err}");
-            let (path, kept) =
-                closed_with(&err).unwrap_or_else(|| panic!("{case}: no count said: {err}"));
+            let kept = check_closed(&case, &err, &disk.0, py.as_deref(), &work, evt, readers);
             if command == "run" {
                 assert!(err.contains("output(s) failed"), "{case}: {err}");
                 // The closing line's count is the file's.
@@ -280,53 +385,6 @@ fn a_full_disk_leaves_a_readable_file_holding_what_was_reported() {
                     "{case}: {line}"
                 );
             }
-            assert!(path.starts_with(&disk.0), "{case}: {}", path.display());
-            assert!(kept > 0, "{case}: {err}");
-            let back = v2ce::format::read_events(&path)
-                .unwrap_or_else(|e| panic!("{case}: {} does not read back: {e}", path.display()));
-            assert_eq!(back.events.len() as u64, kept, "{case}: {err}");
-            assert!(
-                !v2ce::format::journal::path_for(&path).exists(),
-                "{case}: a journal left beside the closed file"
-            );
-            if ext == "csv" {
-                assert!(
-                    !std::fs::read(&path).unwrap().contains(&0),
-                    "{case}: zero bytes"
-                );
-            }
-            if let Some(py) = &py {
-                let expected = work.join("expected.csv");
-                v2ce::format::csv::write(&expected, back.events.events()).unwrap();
-                let first = back.events.events().first().map_or(0, |e| e.t);
-                let offset = match evt {
-                    Some("2") => {
-                        v2ce::format::raw::time_offset_for(v2ce::format::raw::Evt::Evt2, first)
-                    }
-                    Some("3") => {
-                        v2ce::format::raw::time_offset_for(v2ce::format::raw::Evt::Evt3, first)
-                    }
-                    _ => 0,
-                };
-                for reader in readers {
-                    let out = Command::new(py)
-                        .arg(common::script())
-                        .args(["file", reader])
-                        .arg(&path)
-                        .arg(&expected)
-                        .arg(offset.to_string())
-                        .output()
-                        .unwrap();
-                    assert!(
-                        out.status.success(),
-                        "{case}: {reader} on {}: {}{}",
-                        path.display(),
-                        String::from_utf8_lossy(&out.stdout),
-                        String::from_utf8_lossy(&out.stderr)
-                    );
-                }
-            }
-            println!("{case}: {} holds the {kept} events said", path.display());
         }
     }
     std::fs::remove_dir_all(&work).unwrap();

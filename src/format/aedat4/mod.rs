@@ -729,6 +729,36 @@ pub fn check_size(width: u16, height: u16) -> Result<()> {
     Ok(())
 }
 
+/// Marks the file at `path` unfinished: its header's data-table position set to -1 (in
+/// place), as for a file cut short before its table (`v2ce repair`), whose readers then take
+/// the packets up to the cut.
+pub fn forget_data_table(path: &Path) -> Result<()> {
+    let io = |e: std::io::Error| Error::io(path, e);
+    let mut file = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(path)
+        .map_err(io)?;
+    let mut head = [0u8; MAGIC.len() + 4];
+    file.read_exact(&mut head).map_err(io)?;
+    if &head[..MAGIC.len()] != MAGIC {
+        return Err(bad("not AEDAT 4.0 (wrong magic)"));
+    }
+    let n = MAGIC.len();
+    let size = u32::from_le_bytes([head[n], head[n + 1], head[n + 2], head[n + 3]]) as usize;
+    if size > MAX_HEADER_BYTES {
+        return Err(bad(format!(
+            "IOHeader of {size} bytes (limit {MAX_HEADER_BYTES})"
+        )));
+    }
+    let mut buf = vec![0u8; size];
+    file.read_exact(&mut buf).map_err(io)?;
+    let at = find_table_field(&buf)? + head.len() as u64;
+    file.seek(SeekFrom::Start(at))
+        .and_then(|_| file.write_all(&(-1i64).to_le_bytes()))
+        .map_err(io)
+}
+
 /// Offset of the data-table position `i64` inside an `IOHeader` buffer.
 fn find_table_field(buf: &[u8]) -> Result<u64> {
     // Found through the vtable, so a change in the builder's layout cannot move it silently.
