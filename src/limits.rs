@@ -123,7 +123,17 @@ pub fn memory(what: &'static str, bytes: u64, purpose: &str) -> Result<()> {
 
 /// Growth below this many bytes is not checked against [`memory_available`] (reading it
 /// costs a few microseconds; small growth cannot take what is left).
-const CHECKED_GROWTH: u64 = 64 << 20;
+const CHECKED_GROWTH: u64 = 1 << 20;
+
+/// A buffer grows by at most this share of the memory left: what it holds is then sorted,
+/// copied and encoded by others, which need their own.
+const GROWTH_SHARE: u64 = 4;
+
+/// Whether `bytes` more fit in what is left (see [`GROWTH_SHARE`]).
+fn growth_fits(bytes: u64) -> bool {
+    bytes < CHECKED_GROWTH
+        || memory_available().is_none_or(|free| bytes.saturating_mul(GROWTH_SHARE) <= free)
+}
 
 /// Makes room in `v` for one more element (doubling, as `push` does) where memory allows it
 /// ([`memory_available`], and the allocator itself): `false`, with nothing allocated, where
@@ -135,10 +145,38 @@ pub fn room_for_one<T>(v: &mut Vec<T>) -> bool {
     }
     let extra = v.capacity().max(256);
     let bytes = (extra as u64).saturating_mul(std::mem::size_of::<T>() as u64);
-    if bytes >= CHECKED_GROWTH && memory_available().is_some_and(|free| bytes > free) {
-        return false;
+    growth_fits(bytes) && v.try_reserve(extra).is_ok()
+}
+
+/// Memory that buffers filled together (one frame's events, in bands stepped on several
+/// threads) may still grow by, shared by them: a share (see [`GROWTH_SHARE`]) of what was
+/// left when it was made. Taken only when a buffer grows, so the hot path pays nothing.
+#[derive(Debug)]
+pub struct Budget(std::sync::atomic::AtomicU64);
+
+impl Budget {
+    /// A share of the memory left now (unbounded where it cannot be read).
+    pub fn of_memory_left() -> Self {
+        Budget(std::sync::atomic::AtomicU64::new(
+            memory_available().map_or(u64::MAX, |free| free / GROWTH_SHARE),
+        ))
     }
-    v.try_reserve(extra).is_ok()
+
+    /// Makes room in `v` for one more element (doubling) out of this budget, where it and
+    /// the allocator allow: `false`, nothing allocated, where they do not.
+    pub fn room_for_one<T>(&self, v: &mut Vec<T>) -> bool {
+        if v.len() < v.capacity() {
+            return true;
+        }
+        let extra = v.capacity().max(256);
+        let bytes = (extra as u64).saturating_mul(std::mem::size_of::<T>() as u64);
+        let taken = self.0.fetch_update(
+            std::sync::atomic::Ordering::Relaxed,
+            std::sync::atomic::Ordering::Relaxed,
+            |left| left.checked_sub(bytes),
+        );
+        taken.is_ok() && v.try_reserve(extra).is_ok()
+    }
 }
 
 /// Makes room in `v` for `n` more elements where memory allows it (see [`room_for_one`]).
@@ -146,11 +184,13 @@ pub fn room_for<T>(v: &mut Vec<T>, n: usize) -> bool {
     if v.capacity() - v.len() >= n {
         return true;
     }
-    let bytes = (n as u64).saturating_mul(std::mem::size_of::<T>() as u64);
-    if bytes >= CHECKED_GROWTH && memory_available().is_some_and(|free| bytes > free) {
-        return false;
-    }
-    v.try_reserve(n).is_ok()
+    // What the allocator is asked for: the buffer doubles, or grows to the length asked.
+    let grown = v
+        .capacity()
+        .saturating_mul(2)
+        .max(v.len().saturating_add(n));
+    let bytes = ((grown - v.capacity()) as u64).saturating_mul(std::mem::size_of::<T>() as u64);
+    growth_fits(bytes) && v.try_reserve(n).is_ok()
 }
 
 /// The slowest and fastest replay of a recording, times real time.

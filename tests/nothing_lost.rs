@@ -479,3 +479,212 @@ fn repair_keeps_every_event_of_a_whole_file() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Every signal a daemon gets (SIGINT from a terminal, SIGTERM from systemd, SIGHUP from a
+/// closed terminal or `systemctl reload`) stops `run` and `convert` cleanly with their files
+/// whole: `run` exits 0 and its closing line counts what its file holds; `convert` exits 130
+/// saying the input did not end, its partial file readable with the events of the frames it
+/// took. SIGHUP killed both before (exit 129, files unfinished).
+#[test]
+fn every_signal_stops_with_its_files_whole() {
+    let dir = temp_dir("signals");
+    for (signal, name) in [
+        (libc::SIGINT, "int"),
+        (libc::SIGTERM, "term"),
+        (libc::SIGHUP, "hup"),
+    ] {
+        for ext in ["csv", "aedat4", "npz", "h5"] {
+            let out = dir.join(format!("{name}.{ext}"));
+            let case = format!("run .{ext} {name}");
+            let child = v2ce()
+                .args([
+                    "run",
+                    "--source",
+                    "fixture",
+                    "--loop",
+                    "--udp",
+                    "127.0.0.1:9",
+                ])
+                .args(["--queue-policy", "block", "--out"])
+                .arg(&out)
+                .stderr(std::process::Stdio::piped())
+                .spawn()
+                .unwrap();
+            // Running, its file open (a second; a busy machine takes longer to start).
+            let started = std::time::Instant::now();
+            while !out.exists() && started.elapsed() < std::time::Duration::from_secs(60) {
+                std::thread::sleep(std::time::Duration::from_millis(50));
+            }
+            std::thread::sleep(std::time::Duration::from_millis(700));
+            // SAFETY: kill sends a signal to the child's pid.
+            unsafe { libc::kill(child.id() as i32, signal) };
+            let done = child.wait_with_output().unwrap();
+            let err = String::from_utf8_lossy(&done.stderr);
+            assert!(done.status.success(), "{case}: {err}");
+            let line = err
+                .lines()
+                .find(|l| {
+                    l.contains(&format!("file {}", out.display())) && l.contains("events sent")
+                })
+                .unwrap_or_else(|| panic!("{case}: no closing line: {err}"));
+            let sent: u64 = line
+                .split("): ")
+                .nth(1)
+                .and_then(|r| r.split_whitespace().next())
+                .and_then(|n| n.parse().ok())
+                .unwrap_or_else(|| panic!("{case}: {line}"));
+            let back = v2ce::format::read_events(&out)
+                .unwrap_or_else(|e| panic!("{case}: unreadable: {e}"));
+            assert_eq!(back.events.len() as u64, sent, "{case}: {line}");
+            assert!(!v2ce::format::journal::path_for(&out).exists(), "{case}");
+        }
+        for ext in ["npz", "h5"] {
+            let out = dir.join(format!("c-{name}.{ext}"));
+            let case = format!("convert .{ext} {name}");
+            // Large frames on one thread, so the signal comes well before the input's end.
+            let partial = dir.join(format!("c-{name}.partial.{ext}"));
+            let child = v2ce()
+                .env("V2CE_THREADS", "1")
+                .args(["convert", "fixture", "--size", "1280x960", "-o"])
+                .arg(&out)
+                .stderr(std::process::Stdio::piped())
+                .spawn()
+                .unwrap();
+            let started = std::time::Instant::now();
+            while !partial.exists() && started.elapsed() < std::time::Duration::from_secs(60) {
+                std::thread::sleep(std::time::Duration::from_millis(50));
+            }
+            std::thread::sleep(std::time::Duration::from_millis(800));
+            // SAFETY: as above.
+            unsafe { libc::kill(child.id() as i32, signal) };
+            let done = child.wait_with_output().unwrap();
+            let err = String::from_utf8_lossy(&done.stderr);
+            assert_eq!(done.status.code(), Some(130), "{case}: {err}");
+            assert!(err.contains("stopped by a signal"), "{case}: {err}");
+            let back = v2ce::format::read_events(&partial)
+                .unwrap_or_else(|e| panic!("{case}: unreadable: {e}"));
+            assert!(!back.events.is_empty(), "{case}");
+            assert!(!out.exists(), "{case}: named as if whole");
+        }
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Runs `v2ce ARGS` under an address-space limit of `kib` (as `ulimit -v`), so that memory
+/// runs out at the size a test chooses; the output, which must not be an abort.
+fn under_memory_limit(kib: u64, args: &[&str]) -> std::process::Output {
+    let mut script = format!("ulimit -v {kib} && exec \"$0\"");
+    for i in 0..args.len() {
+        script.push_str(&format!(" \"${}\"", i + 1));
+    }
+    let out = Command::new("sh")
+        .arg("-c")
+        .arg(&script)
+        .arg(env!("CARGO_BIN_EXE_v2ce"))
+        .args(args)
+        .output()
+        .unwrap();
+    use std::os::unix::process::ExitStatusExt;
+    assert!(
+        out.status.signal().is_none() && out.status.code() != Some(134),
+        "{args:?} aborted: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
+/// Memory budgeted where outside sizes it: a frame whose events outgrow what is left (a
+/// 2048 x 2048 flash from black to white on the ideal pixel, 250 million events) is refused
+/// with a clear error where the pixel model aborted in its buffers; `eval realism --fps 1e6`
+/// on a recording without frames streams its reconstructed frames (it held them all: 8,000
+/// frames of 346 x 260, past the limit) and completes.
+#[test]
+fn memory_from_outside_is_budgeted_not_aborted() {
+    let dir = temp_dir("memory");
+    let flash = dir.join("flash.y4m");
+    let (w, h) = (2048usize, 2048usize);
+    let mut y4m = format!("YUV4MPEG2 W{w} H{h} F30:1 Ip A1:1 C420jpeg\n").into_bytes();
+    for v in [0u8, 255, 0] {
+        y4m.extend_from_slice(b"FRAME\n");
+        y4m.extend(std::iter::repeat_n(v, w * h));
+        y4m.extend(std::iter::repeat_n(128u8, w * h / 2));
+    }
+    std::fs::write(&flash, y4m).unwrap();
+    let out = dir.join("flash.csv");
+    let (f, o) = (flash.to_str().unwrap(), out.to_str().unwrap());
+    let done = under_memory_limit(1_500_000, &["convert", f, "-o", o, "--preset", "ideal"]);
+    let err = String::from_utf8_lossy(&done.stderr);
+    assert_eq!(done.status.code(), Some(1), "{err}");
+    assert!(err.contains("more events than memory holds"), "{err}");
+
+    let csv = dir.join("span.csv");
+    let mut text = String::from("t_us,x,y,on\n");
+    for i in 0..8000u32 {
+        text.push_str(&format!(
+            "{i},{},{},{}\n",
+            (i * 7) % 346,
+            (i * 13) % 260,
+            i % 2
+        ));
+    }
+    std::fs::write(&csv, text).unwrap();
+    let c = csv.to_str().unwrap();
+    let done = under_memory_limit(1_200_000, &["eval", "realism", "--real", c, "--fps", "1e6"]);
+    let err = String::from_utf8_lossy(&done.stderr);
+    assert!(done.status.success(), "{err}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// HDF5 files that declare sizes they do not hold (made by h5py, from the project's venv):
+/// a chunk declared at 300 MB is refused before a byte of it is read (the HDF5 reader
+/// allocated what the file declared); a billion events declared and a thousand written give
+/// a clear error past the memory budget of a whole-file read, not an abort.
+#[test]
+fn hdf5_sizes_declared_from_outside_are_bounded() {
+    let Some(py) = common::python() else {
+        println!("SKIPPED hdf5_sizes_declared_from_outside_are_bounded: no Python venv (h5py)");
+        return;
+    };
+    let dir = temp_dir("hdf5-sizes");
+    let make = r#"
+import sys, h5py, numpy as np
+path, n, chunk = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+with h5py.File(path, "w") as f:
+    g = f.create_group("events")
+    for name, dt in [("x", "u2"), ("y", "u2"), ("t", "u4"), ("p", "u1")]:
+        d = g.create_dataset(name, shape=(n,), maxshape=(None,), dtype=dt,
+                             chunks=(chunk,), compression="gzip")
+        d[:1000] = 0
+    f.create_dataset("t_offset", data=np.int64(0))
+"#;
+    let big_chunk = dir.join("chunk.h5");
+    let claims = dir.join("claims.h5");
+    for (path, n, chunk) in [
+        (&big_chunk, "1000", "150000000"),
+        (&claims, "1000000000", "65536"),
+    ] {
+        let made = Command::new(&py)
+            .args(["-c", make])
+            .arg(path)
+            .args([n, chunk])
+            .output()
+            .unwrap();
+        assert!(made.status.success(), "{made:?}");
+    }
+    let chunk = big_chunk.to_str().unwrap();
+    for args in [
+        vec!["info", chunk],
+        vec!["transcode", chunk, "/dev/null/never.csv"],
+    ] {
+        let done = under_memory_limit(1_500_000, &args);
+        let err = String::from_utf8_lossy(&done.stderr);
+        assert_eq!(done.status.code(), Some(1), "{args:?}: {err}");
+        assert!(err.contains("declares chunks"), "{args:?}: {err}");
+    }
+    let c = claims.to_str().unwrap();
+    let done = under_memory_limit(1_500_000, &["eval", "realism", "--real", c, "--sim", c]);
+    let err = String::from_utf8_lossy(&done.stderr);
+    assert_eq!(done.status.code(), Some(1), "{err}");
+    assert!(err.contains("need more memory"), "{err}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -163,6 +163,7 @@ impl PhysicsSim {
             own_on,
             own_off,
             seed: *seed,
+            budget: crate::limits::Budget::of_memory_left(),
         };
         // Grown, never shrunk: a frame stepped in one band keeps the others' buffers for the
         // next frame stepped in many (only the first `bands` are used).
@@ -394,6 +395,11 @@ impl Band<'_> {
             settled &= !keep | ((l0 == l1) & ((y1 - l1).abs() < 1e-4));
             l_in[j] = if keep { l1 } else { l0 };
             l_p[j] = if keep { y1 } else { y0 };
+        }
+        // Room for the row's slow pixels where memory has it (else the frame is refused).
+        if slow.capacity() - slow.len() < n && !crate::limits::room_for(slow, n.max(slow.len())) {
+            self.unheld += n as u64;
+            return settled;
         }
         for (j, &keep) in kept[..n].iter().enumerate() {
             if !keep {

@@ -233,6 +233,8 @@ pub(super) struct Shared<'a> {
     pub own_off: &'a [f32],
     /// The simulator's seed, which the threshold noise is drawn from.
     pub seed: u64,
+    /// What the frame's event buffers may still grow by, all bands together.
+    pub budget: crate::limits::Budget,
 }
 
 /// A band's pixels as the slow path sees them: their state, indexed from the band's first
@@ -266,6 +268,10 @@ impl Slow<'_, '_> {
         out: &mut Vec<Event>,
     ) {
         lanes.clear();
+        if !crate::limits::room_for(lanes, pixels.len()) {
+            *self.unheld += pixels.len() as u64;
+            return;
+        }
         lanes.extend(pixels.iter().map(|p| Lane {
             x: p.x,
             row: p.y,
@@ -425,7 +431,8 @@ impl Slow<'_, '_> {
                 continue;
             }
             s.last = te;
-            if !crate::limits::room_for_one(out) {
+            // Once memory refused one, the frame is refused: the rest are only counted.
+            if *self.unheld > 0 || !self.shared.budget.room_for_one(out) {
                 *self.unheld += 1;
                 continue;
             }
