@@ -150,31 +150,36 @@ pub fn room_for_one<T>(v: &mut Vec<T>) -> bool {
 
 /// Memory that buffers filled together (one frame's events, in bands stepped on several
 /// threads) may still grow by, shared by them: a share (see [`GROWTH_SHARE`]) of what was
-/// left when it was made. Taken only when a buffer grows, so the hot path pays nothing.
+/// left when one first had to grow. Read and taken only when a buffer grows, so a frame whose
+/// buffers have room pays nothing.
 #[derive(Debug)]
 pub struct Budget(std::sync::atomic::AtomicU64);
 
+/// A [`Budget`] not read yet.
+const UNREAD: u64 = u64::MAX;
+
 impl Budget {
-    /// A share of the memory left now (unbounded where it cannot be read).
+    /// A share of the memory left when first needed (unbounded where it cannot be read).
     pub fn of_memory_left() -> Self {
-        Budget(std::sync::atomic::AtomicU64::new(
-            memory_available().map_or(u64::MAX, |free| free / GROWTH_SHARE),
-        ))
+        Budget(std::sync::atomic::AtomicU64::new(UNREAD))
     }
 
     /// Makes room in `v` for one more element (doubling) out of this budget, where it and
     /// the allocator allow: `false`, nothing allocated, where they do not.
     pub fn room_for_one<T>(&self, v: &mut Vec<T>) -> bool {
+        use std::sync::atomic::Ordering::Relaxed;
         if v.len() < v.capacity() {
             return true;
         }
+        if self.0.load(Relaxed) == UNREAD {
+            let left = memory_available().map_or(UNREAD - 1, |free| free / GROWTH_SHARE);
+            let _ = self.0.compare_exchange(UNREAD, left, Relaxed, Relaxed);
+        }
         let extra = v.capacity().max(256);
         let bytes = (extra as u64).saturating_mul(std::mem::size_of::<T>() as u64);
-        let taken = self.0.fetch_update(
-            std::sync::atomic::Ordering::Relaxed,
-            std::sync::atomic::Ordering::Relaxed,
-            |left| left.checked_sub(bytes),
-        );
+        let taken = self
+            .0
+            .fetch_update(Relaxed, Relaxed, |left| left.checked_sub(bytes));
         taken.is_ok() && v.try_reserve(extra).is_ok()
     }
 }
