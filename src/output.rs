@@ -59,6 +59,51 @@ pub fn check(path: &Path, inputs: &[&Path], force: bool) -> Result<()> {
     Ok(())
 }
 
+/// Checks a folder output `dir` into which a command writes `names` (files or folders): it
+/// must be a folder where it exists (not a file, device or FIFO), which it writes into only
+/// with `force`, and none of `names` in it may be or hold one of the command's `inputs`
+/// (through links and spellings).
+pub fn check_folder(dir: &Path, names: &[&str], inputs: &[&Path], force: bool) -> Result<()> {
+    let Ok(meta) = std::fs::metadata(dir) else {
+        return Ok(());
+    };
+    if !meta.is_dir() {
+        return Err(Error::invalid(
+            "output",
+            format!(
+                "{} exists and is not a folder: this command writes a folder",
+                dir.display()
+            ),
+        ));
+    }
+    if !force {
+        return Err(Error::invalid(
+            "output",
+            format!("{} exists (--force writes into it)", dir.display()),
+        ));
+    }
+    for name in names {
+        let Ok(written) = std::fs::canonicalize(dir.join(name)) else {
+            continue;
+        };
+        let held = inputs.iter().find(|input| {
+            std::fs::canonicalize(input).is_ok_and(|input| input.starts_with(&written))
+        });
+        if let Some(input) = held {
+            return Err(Error::invalid(
+                "output",
+                format!(
+                    "{} would be written over an input of this command ({}); choose another \
+                     folder",
+                    written.display(),
+                    input.display()
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
 /// Writes `path` whole through `write`, which is handed the partial name to write to (a
 /// library that opens the file itself, such as a plot's): renamed when `write` succeeds; on
 /// failure the partial file is removed and the path is left as it was.
@@ -122,5 +167,26 @@ mod tests {
         assert!(!dir.join("other.partial.toml").exists());
         assert_eq!(std::fs::read(&input).unwrap(), b"events");
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A folder output: a file is refused, an existing folder needs `force`, and a folder
+    /// whose written parts hold an input is refused.
+    #[test]
+    fn folder_outputs_never_hold_their_inputs() {
+        let dir = std::env::temp_dir().join(format!("v2ce-folder-{}", std::process::id()));
+        let images = dir.join("images");
+        std::fs::create_dir_all(&images).unwrap();
+        let input = images.join("e.csv");
+        std::fs::write(&input, b"t_us,x,y,on\n").unwrap();
+        let names = ["images.txt", "images"];
+        let err = |d: &Path, force| check_folder(d, &names, &[&input], force).unwrap_err();
+        assert!(err(&input, true).to_string().contains("not a folder"));
+        assert!(err(&dir, false).to_string().contains("--force"));
+        assert!(err(&dir, true).to_string().contains("over an input"));
+        let other = dir.join("out");
+        assert!(check_folder(&other, &names, &[&input], false).is_ok());
+        std::fs::create_dir_all(&other).unwrap();
+        assert!(check_folder(&other, &names, &[&input], true).is_ok());
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

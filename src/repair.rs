@@ -11,11 +11,11 @@
 //! The repaired file is read through once with this program's decoder before it is called
 //! repaired. A file that is already whole is left as it is.
 
-use std::io::{Read, Seek, SeekFrom};
+use std::io::Read;
 use std::path::{Path, PathBuf};
 
 use crate::error::{Error, Result};
-use crate::format::{self, journal, raw, EventDecoder, Format};
+use crate::format::{self, journal, EventDecoder, Format};
 
 /// What [`repair`] did.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -118,7 +118,7 @@ pub fn repair(path: &Path, output: Option<&Path>) -> Result<Report> {
     let len = std::fs::metadata(path)
         .map_err(|e| Error::io(path, e))?
         .len();
-    let kept = whole_prefix(path, format)?;
+    let kept = format::cut::whole_prefix(path, format)?;
     if kept >= len {
         let events = count(path)?;
         return whole(path, output, events);
@@ -137,15 +137,7 @@ pub fn repair(path: &Path, output: Option<&Path>) -> Result<Report> {
                 .map_err(|e| partial.explain(e))?;
         }
     }
-    if matches!(format, Format::Aedat4(_)) {
-        // Cut before the data table a finished file ended with: readers must not look for it.
-        let header = format::aedat4::Reader::new_file(std::io::BufReader::new(
-            std::fs::File::open(target).map_err(|e| Error::io(target, e))?,
-        ))?;
-        if header.header().data_table_position >= 0 {
-            format::aedat4::forget_data_table(target)?;
-        }
-    }
+    format::cut::unfinished(target, format)?;
     let events = count(target)?;
     Ok(Report {
         output: target.to_path_buf(),
@@ -184,7 +176,7 @@ fn close_copy(e: Error, partial: &Path, format: Format) -> Error {
             "{e}; the copy was removed (whole only when complete)"
         ));
     }
-    match cut_in_place(partial) {
+    match format::cut::cut_in_place(partial) {
         Ok(n) => Error::Run(format!(
             "{e}; {} was closed readably with the {n} events that reached it",
             partial.display()
@@ -193,13 +185,6 @@ fn close_copy(e: Error, partial: &Path, format: Format) -> Error {
             "{e}; and the copy could not be closed readably ({why})"
         )),
     }
-}
-
-/// Cuts `path` (`.csv`, `.raw`, `.aedat4`) after its last whole unit in place, as [`repair`]
-/// does; returns the events it then holds. Needs no room on the disk (a full disk's output is
-/// closed this way).
-pub fn cut_in_place(path: &Path) -> Result<u64> {
-    repair(path, None).map(|r| r.events)
 }
 
 /// Writes `target` in `format` from the journal at `journal_path`, then removes the journal.
@@ -254,111 +239,6 @@ fn from_journal(journal_path: &Path, target: &Path, format: Format) -> Result<Re
 /// The events of `path`, read through with this program's decoder.
 fn count(path: &Path) -> Result<u64> {
     Ok(crate::transcode::summarize(path)?.events)
-}
-
-/// The length of `path`'s leading whole units (packets, words, lines) in `format`.
-fn whole_prefix(path: &Path, format: Format) -> Result<u64> {
-    let open = || std::fs::File::open(path).map_err(|e| Error::io(path, e));
-    let reader = || Ok::<_, Error>(std::io::BufReader::with_capacity(1 << 16, open()?));
-    let len = std::fs::metadata(path)
-        .map_err(|e| Error::io(path, e))?
-        .len();
-    let wrap = |e: Error| Error::format(path, e.to_string());
-    match format {
-        Format::Aedat4(_) => {
-            let scan = || -> Result<(bool, u64)> {
-                let mut r = format::aedat4::Reader::new_file(reader()?).map_err(wrap)?;
-                let finished = r.header().data_table_position >= 0;
-                let read = (|| {
-                    while r.next_item()?.is_some() {}
-                    Ok::<_, Error>(())
-                })();
-                match read {
-                    // A finished file ends with its data table, after the packets.
-                    Ok(()) if finished => Ok((true, len)),
-                    Ok(()) => Ok((false, r.whole_bytes())),
-                    // A finished file cut short (a copy on a full disk): its table is lost.
-                    Err(_) if finished => Ok((true, u64::MAX)),
-                    Err(e) => Err(wrap(e)),
-                }
-            };
-            match scan()? {
-                (true, u64::MAX) => {
-                    // Read as an unfinished file (up to its last whole packet), on a copy of
-                    // the header whose table position is forgotten.
-                    let mut file = reader()?;
-                    let mut magic = [0u8; format::aedat4::MAGIC.len()];
-                    file.read_exact(&mut magic)
-                        .map_err(|e| Error::io(path, e))?;
-                    let mut r = format::aedat4::Reader::new_stream(file).map_err(wrap)?;
-                    while r.next_item().map_err(wrap)?.is_some() {}
-                    Ok(r.whole_bytes() + magic.len() as u64)
-                }
-                (_, kept) => Ok(kept),
-            }
-        }
-        Format::Evt2 | Format::Evt3 => {
-            // The header says which words follow (the extension does not).
-            let header = raw::read_header(&mut reader()?).map_err(wrap)?;
-            let word = match header.evt {
-                Some(raw::Evt::Evt3) => 2,
-                _ => 4,
-            };
-            let body = len.saturating_sub(header.bytes);
-            Ok(header.bytes + body / word * word)
-        }
-        Format::Csv => {
-            // After the last newline, unless what follows it is a whole line (a file whose
-            // writer left out the last newline).
-            let mut file = open()?;
-            let mut end = len;
-            let mut buf = vec![0u8; 1 << 16];
-            let mut cut = 0;
-            while end > 0 {
-                let start = end.saturating_sub(buf.len() as u64);
-                let chunk = &mut buf[..(end - start) as usize];
-                file.seek(SeekFrom::Start(start))
-                    .and_then(|_| file.read_exact(chunk))
-                    .map_err(|e| Error::io(path, e))?;
-                if let Some(i) = chunk.iter().rposition(|&b| b == b'\n') {
-                    cut = start + i as u64 + 1;
-                    break;
-                }
-                end = start;
-            }
-            if cut < len && csv_tail_is_whole(path, cut)? {
-                return Ok(len);
-            }
-            Ok(cut)
-        }
-        Format::Npz | Format::Hdf5 => Ok(len),
-    }
-}
-
-/// Whether the CSV file `path`'s text after byte `from` (its last line, without a newline)
-/// is a whole event in the file's columns. Reads the first two lines and the tail, each
-/// bounded by the reader's longest line.
-fn csv_tail_is_whole(path: &Path, from: u64) -> Result<bool> {
-    use std::io::BufRead;
-    const LINE: u64 = 4096;
-    let mut file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
-    let len = file.metadata().map_err(|e| Error::io(path, e))?.len();
-    if len - from > LINE {
-        return Ok(false);
-    }
-    let mut tail = Vec::new();
-    file.seek(SeekFrom::Start(from))
-        .and_then(|_| file.read_to_end(&mut tail))
-        .map_err(|e| Error::io(path, e))?;
-    file.seek(SeekFrom::Start(0))
-        .map_err(|e| Error::io(path, e))?;
-    let mut lines = std::io::BufReader::new(file.take(2 * LINE)).lines();
-    let first = lines.next().and_then(|l| l.ok()).unwrap_or_default();
-    let data = lines.next().and_then(|l| l.ok()).unwrap_or_default();
-    let (Ok(tail), true) = (std::str::from_utf8(&tail), from > 0) else {
-        return Ok(false);
-    };
-    Ok(format::csv::is_whole_last_line(&first, &data, tail))
 }
 
 /// Copies the first `n` bytes of `from` to `to`.

@@ -81,12 +81,12 @@ pub struct ReconstructArgs {
 
 /// Runs `v2ce reconstruct`.
 pub fn reconstruct(args: ReconstructArgs) -> Result<()> {
-    if args.output.exists() && !args.force {
-        return Err(Error::invalid(
-            "output",
-            format!("{} exists (--force writes into it)", args.output.display()),
-        ));
-    }
+    crate::output::check_folder(
+        &args.output,
+        &["images.txt", "images"],
+        &[&args.input],
+        args.force,
+    )?;
     let size = args.size.as_deref().map(parse_size).transpose()?;
     let how = crate::reconstruct::Reconstruction {
         contrast: args.contrast,

@@ -16,6 +16,7 @@
 
 pub mod aedat4;
 pub mod csv;
+pub mod cut;
 pub mod datagram;
 pub mod evt2;
 pub mod evt3;
@@ -311,7 +312,7 @@ impl FileEncoder {
             Ok(Some(n)) => Ok(n),
             Ok(None) => {
                 drop(inner);
-                crate::repair::cut_in_place(&self.path)
+                cut::cut_in_place(&self.path)
             }
             Err(why) => Err(why),
         };
