@@ -688,3 +688,61 @@ with h5py.File(path, "w") as f:
     assert!(err.contains("need more memory"), "{err}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// The red team's CSV from another tool (eventcv's header `t_us,x,y,p`) is read by `eval
+/// realism --sim` (refused before: "expected 't_us,x,y,on' fields"), and the same events with
+/// times in fractional seconds under `t,x,y,polarity` and columns in another order transcode
+/// to the same file as the project's own CSV.
+#[test]
+fn csv_from_other_tools_is_read_by_its_column_names() {
+    let dir = temp_dir("peer-csv");
+    let ours = dir.join("ours.csv");
+    let peer = dir.join("peer.csv");
+    let seconds = dir.join("seconds.csv");
+    let (mut a, mut b, mut c) = (
+        String::from("t_us,x,y,on\n"),
+        String::from("t_us,x,y,p\n"),
+        String::from("polarity,y,x,t\n"),
+    );
+    for i in 0..3000u32 {
+        let (t, x, y, on) = (1000 + i * 37, i % 64, (i * 7) % 48, i % 3 == 0);
+        a.push_str(&format!("{t},{x},{y},{}\n", u8::from(on)));
+        b.push_str(&format!("{t},{x},{y},{}\n", u8::from(on)));
+        let p = if on { "1" } else { "-1" };
+        c.push_str(&format!("{p},{y},{x},{:.6}\n", f64::from(t) / 1e6));
+    }
+    std::fs::write(&ours, a).unwrap();
+    std::fs::write(&peer, b).unwrap();
+    std::fs::write(&seconds, c).unwrap();
+    let done = v2ce()
+        .args(["eval", "realism", "--real"])
+        .arg(&ours)
+        .arg("--sim")
+        .arg(&peer)
+        .args(["--fps", "100"])
+        .output()
+        .unwrap();
+    assert!(
+        done.status.success(),
+        "{}",
+        String::from_utf8_lossy(&done.stderr)
+    );
+    let want = std::fs::read(&ours).unwrap();
+    for input in [&peer, &seconds] {
+        let out = dir.join("back.csv");
+        let done = v2ce()
+            .arg("transcode")
+            .arg(input)
+            .arg(&out)
+            .args(["--size", "64x48", "--force"])
+            .output()
+            .unwrap();
+        assert!(
+            done.status.success(),
+            "{}",
+            String::from_utf8_lossy(&done.stderr)
+        );
+        assert!(std::fs::read(&out).unwrap() == want, "{}", input.display());
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
