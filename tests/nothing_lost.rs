@@ -577,7 +577,12 @@ fn under_memory_limit(kib: u64, args: &[&str]) -> std::process::Output {
     for i in 0..args.len() {
         script.push_str(&format!(" \"${}\"", i + 1));
     }
+    // Two workers and two malloc arenas whatever the machine's cores: each thread's stack and
+    // arena take address space, which the limit counts.
     let out = Command::new("sh")
+        .env("V2CE_THREADS", "2")
+        .env("RAYON_NUM_THREADS", "2")
+        .env("MALLOC_ARENA_MAX", "2")
         .arg("-c")
         .arg(&script)
         .arg(env!("CARGO_BIN_EXE_v2ce"))
