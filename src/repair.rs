@@ -210,22 +210,42 @@ fn from_journal(journal_path: &Path, target: &Path, format: Format) -> Result<Re
             action: Action::FromJournal(journal_path.to_path_buf()),
         });
     }
-    let mut decoder = journal::Decoder::open(journal_path)?;
-    let size = decoder.size().unwrap_or((0, 0));
+    // An `.npz` journal becomes the archive in place (it holds the records already).
+    if format == Format::Npz {
+        if let Some(written) = format::npz::archive_journal(journal_path, target)? {
+            let events = count(target)?;
+            if events != written {
+                return Err(Error::format(
+                    target,
+                    format!("holds {events} events after the repair, {written} written"),
+                ));
+            }
+            return Ok(Report {
+                output: target.to_path_buf(),
+                events,
+                action: Action::FromJournal(journal_path.to_path_buf()),
+            });
+        }
+    }
     let out = format::PartialOutput::new(target);
-    let report =
+    let written = if format == Format::Hdf5 {
+        // Without a second journal: the one read is the copy a kill would leave.
+        format::hdf5::write_from_journal(journal_path, out.writing())
+    } else {
+        let mut decoder = journal::Decoder::open(journal_path)?;
+        let size = decoder.size().unwrap_or((0, 0));
         crate::transcode::write_all(journal_path, &mut decoder, out.writing(), format, size)
-            .and_then(|r| out.commit().map(|()| r))
-            .map_err(|e| out.explain(e))?;
+            .map(|r| r.events)
+    };
+    let written = written
+        .and_then(|n| out.commit().map(|()| n))
+        .map_err(|e| out.explain(e))?;
     // Read back before the journal goes.
     let events = count(target)?;
-    if events != report.events {
+    if events != written {
         return Err(Error::format(
             target,
-            format!(
-                "holds {events} events after the repair, {} written",
-                report.events
-            ),
+            format!("holds {events} events after the repair, {written} written"),
         ));
     }
     std::fs::remove_file(journal_path).map_err(|e| Error::io(journal_path, e))?;

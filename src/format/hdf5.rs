@@ -445,6 +445,26 @@ impl EventEncoder for Encoder {
     }
 }
 
+/// Writes `path` from the journal at `journal` (its sensor size, every whole record), without
+/// a journal of its own (the one it reads is the copy a kill would leave); returns the events.
+pub fn write_from_journal(journal: &Path, path: &Path) -> Result<u64> {
+    let mut from = super::journal::Decoder::open(journal)?;
+    let (w, h) = from.size().unwrap_or((0, 0));
+    let mut to = Encoder::create_unjournaled(path, w, h)?;
+    let mut buf = Vec::with_capacity(CHUNK);
+    let mut n = 0u64;
+    loop {
+        buf.clear();
+        if from.read_events(&mut buf, CHUNK)? == 0 {
+            break;
+        }
+        to.write(&buf)?;
+        n += buf.len() as u64;
+    }
+    to.finish()?;
+    Ok(n)
+}
+
 impl Encoder {
     /// Writes this encoder's file, without a journal, from the first `n` events of `journal`.
     fn write_from(&self, journal: &Path, n: u64) -> Result<()> {

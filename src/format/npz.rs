@@ -180,6 +180,27 @@ impl EventEncoder for Encoder {
     }
 }
 
+/// Turns the journal at `journal` (version 2, whose head has room for the archive's headers)
+/// into the archive `target` in place, from its whole records: no copy, and the disk needs only
+/// the directory's few hundred bytes more. `None` where the journal is of version 1 (written
+/// by an older v2ce), which must be copied.
+pub fn archive_journal(journal: &Path, target: &Path) -> Result<Option<u64>> {
+    let err = |e| Error::io(journal, e);
+    let mut file = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(journal)
+        .map_err(err)?;
+    let mut head = [0u8; 10];
+    file.read_exact(&mut head).map_err(err)?;
+    if &head[..8] != b"V2CEJRNL" || u16::from_le_bytes([head[8], head[9]]) < 2 {
+        return Ok(None);
+    }
+    let len = file.metadata().map_err(err)?.len();
+    let count = len.saturating_sub(super::journal::HEAD as u64) / RECORD as u64;
+    archive_in_place(file, journal, target, count).map(Some)
+}
+
 /// The zip entry's name.
 const ENTRY: &str = "event_stream.npy";
 
