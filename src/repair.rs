@@ -200,10 +200,7 @@ fn from_journal(journal_path: &Path, target: &Path, format: Format) -> Result<Re
                 n => events += n as u64,
             }
         }
-        let out = format::PartialOutput::new(target);
-        std::fs::copy(journal_path, out.writing()).map_err(|e| Error::io(out.writing(), e))?;
-        out.commit()?;
-        std::fs::remove_file(journal_path).map_err(|e| Error::io(journal_path, e))?;
+        std::fs::rename(journal_path, target).map_err(|e| Error::io(target, e))?;
         return Ok(Report {
             output: target.to_path_buf(),
             events,

@@ -480,6 +480,24 @@ fn repair_keeps_every_event_of_a_whole_file() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// Sends `signal` to `child` `after_ms` after `path` appears (it is running and writing; a
+/// busy machine takes longer to start), and waits for its end.
+fn signal_once_writing(
+    child: std::process::Child,
+    path: &Path,
+    after_ms: u64,
+    signal: i32,
+) -> std::process::Output {
+    let started = std::time::Instant::now();
+    while !path.exists() && started.elapsed() < std::time::Duration::from_secs(60) {
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    std::thread::sleep(std::time::Duration::from_millis(after_ms));
+    // SAFETY: kill sends a signal to the child's pid.
+    unsafe { libc::kill(child.id() as i32, signal) };
+    child.wait_with_output().unwrap()
+}
+
 /// Every signal a daemon gets (SIGINT from a terminal, SIGTERM from systemd, SIGHUP from a
 /// closed terminal or `systemctl reload`) stops `run` and `convert` cleanly with their files
 /// whole: `run` exits 0 and its closing line counts what its file holds; `convert` exits 130
@@ -510,15 +528,7 @@ fn every_signal_stops_with_its_files_whole() {
                 .stderr(std::process::Stdio::piped())
                 .spawn()
                 .unwrap();
-            // Running, its file open (a second; a busy machine takes longer to start).
-            let started = std::time::Instant::now();
-            while !out.exists() && started.elapsed() < std::time::Duration::from_secs(60) {
-                std::thread::sleep(std::time::Duration::from_millis(50));
-            }
-            std::thread::sleep(std::time::Duration::from_millis(700));
-            // SAFETY: kill sends a signal to the child's pid.
-            unsafe { libc::kill(child.id() as i32, signal) };
-            let done = child.wait_with_output().unwrap();
+            let done = signal_once_writing(child, &out, 700, signal);
             let err = String::from_utf8_lossy(&done.stderr);
             assert!(done.status.success(), "{case}: {err}");
             let line = err
@@ -550,14 +560,7 @@ fn every_signal_stops_with_its_files_whole() {
                 .stderr(std::process::Stdio::piped())
                 .spawn()
                 .unwrap();
-            let started = std::time::Instant::now();
-            while !partial.exists() && started.elapsed() < std::time::Duration::from_secs(60) {
-                std::thread::sleep(std::time::Duration::from_millis(50));
-            }
-            std::thread::sleep(std::time::Duration::from_millis(800));
-            // SAFETY: as above.
-            unsafe { libc::kill(child.id() as i32, signal) };
-            let done = child.wait_with_output().unwrap();
+            let done = signal_once_writing(child, &partial, 800, signal);
             let err = String::from_utf8_lossy(&done.stderr);
             assert_eq!(done.status.code(), Some(130), "{case}: {err}");
             assert!(err.contains("stopped by a signal"), "{case}: {err}");

@@ -17,7 +17,6 @@ import os
 import re
 import shutil
 import signal
-import socket
 import stat
 import struct
 import subprocess
@@ -68,7 +67,6 @@ def digest(path):
 
 def events_of(v2ce, path):
     """The event count `v2ce info` reads in `path`, or None where it does not read."""
-    code, _ = None, None
     p = subprocess.run([v2ce, "info", path], capture_output=True, timeout=TIMEOUT_S)
     if p.returncode != 0:
         return None
@@ -179,6 +177,24 @@ def closed_with(err):
     return (m.group(1), int(m.group(2))) if m else (None, None)
 
 
+def judge_full_disk(v2ce, kind, case, code, err, out, failure):
+    """A command that wrote `out` on a small disk: exit 0 only with a whole file; else an
+    error saying `failure`, and the file it names holding the count it says (none named where
+    it failed before any event: its header did not fit)."""
+    path, n = closed_with(err)
+    if aborted(code):
+        record(kind, case, False, f"aborted or hung: {err[-300:]}")
+    elif code == 0:
+        record(kind, case, events_of(v2ce, out) is not None, "unreadable")
+    elif failure not in err:
+        record(kind, case, False, f"exit {code} without saying '{failure}': {err[-300:]}")
+    elif path is None:
+        record(kind, case, True)
+    else:
+        got = events_of(v2ce, path)
+        record(kind, case, got == n, f"{path} holds {got}, said {n}")
+
+
 def sweep_full_disk(v2ce, work):
     kind = "full disk"
     source = os.path.join(work, "source.aedat4")
@@ -211,19 +227,7 @@ def sweep_full_disk(v2ce, work):
                     out = os.path.join(disk, f"f.{ext}")
                     code, err = limited([v2ce] + args + [out])
                     case = f"{name} .{ext} {evt or ''} on {size}"
-                    path, n = closed_with(err)
-                    if aborted(code):
-                        record(kind, case, False, f"aborted or hung: {err[-300:]}")
-                    elif code == 0:
-                        # It fitted: the file is whole.
-                        record(kind, case, events_of(v2ce, out) is not None, "unreadable")
-                    elif path is None:
-                        # Failed before any event (the header did not fit): said, no file
-                        # claiming events.
-                        record(kind, case, "No space" in err or "space" in err, err[-300:])
-                    else:
-                        got = events_of(v2ce, path)
-                        record(kind, case, got == n, f"{path} holds {got}, said {n}")
+                    judge_full_disk(v2ce, kind, case, code, err, out, "space")
                 # run: the file output fails while the UDP output goes on.
                 for f in os.listdir(disk):
                     os.remove(os.path.join(disk, f))
@@ -235,17 +239,7 @@ def sweep_full_disk(v2ce, work):
                                      "--udp", "127.0.0.1:9", "--queue-policy", "block",
                                      "--replay-speed", "8", "--config", config])
                 case = f"run .{ext} {evt or ''} on {size}"
-                path, n = closed_with(err)
-                if aborted(code):
-                    record(kind, case, False, f"aborted or hung: {err[-300:]}")
-                elif code == 0:
-                    record(kind, case, events_of(v2ce, out) is not None, "unreadable")
-                elif path is None:
-                    record(kind, case, "output(s) failed" in err, err[-300:])
-                else:
-                    got = events_of(v2ce, path)
-                    record(kind, case, got == n and "output(s) failed" in err,
-                           f"{path} holds {got}, said {n}")
+                judge_full_disk(v2ce, kind, case, code, err, out, "output(s) failed")
         finally:
             subprocess.run(["umount", disk], capture_output=True)
 
@@ -336,7 +330,6 @@ def sweep_signals(v2ce, work):
                     sender.wait()
             err = err.decode(errors="replace")
             got = events_of(v2ce, out)
-            m = re.search(r"(\d+) events", err)
             record(kind, case, p.returncode == 0 and got is not None,
                    f"exit {p.returncode}, {got} events: {err[-300:]}")
 

@@ -400,10 +400,16 @@ impl EventEncoder for Encoder {
         for _ in 0..8 {
             want = tries.next().unwrap_or(want / 2);
             let _ = std::fs::remove_file(&self.path);
-            match self.write_from(&journal_path, want) {
-                Ok(()) => {
+            let size = Some((self.width, self.height));
+            match write_journal(&journal_path, &self.path, size, want) {
+                Ok(written) if written == want => {
                     journal.complete();
                     return Ok(Some(want));
+                }
+                Ok(written) => {
+                    let _ = std::fs::remove_file(&self.path);
+                    last_error = Some(bad(format!("the journal held {written} of {want} events")));
+                    break;
                 }
                 Err(e) if want > 0 => {
                     tracing::debug!("{}: {e}; trying fewer events", self.path.display());
@@ -448,43 +454,29 @@ impl EventEncoder for Encoder {
 /// Writes `path` from the journal at `journal` (its sensor size, every whole record), without
 /// a journal of its own (the one it reads is the copy a kill would leave); returns the events.
 pub fn write_from_journal(journal: &Path, path: &Path) -> Result<u64> {
-    let mut from = super::journal::Decoder::open(journal)?;
-    let (w, h) = from.size().unwrap_or((0, 0));
-    let mut to = Encoder::create_unjournaled(path, w, h)?;
-    let mut buf = Vec::with_capacity(CHUNK);
-    let mut n = 0u64;
-    loop {
-        buf.clear();
-        if from.read_events(&mut buf, CHUNK)? == 0 {
-            break;
-        }
-        to.write(&buf)?;
-        n += buf.len() as u64;
-    }
-    to.finish()?;
-    Ok(n)
+    write_journal(journal, path, None, u64::MAX)
 }
 
-impl Encoder {
-    /// Writes this encoder's file, without a journal, from the first `n` events of `journal`.
-    fn write_from(&self, journal: &Path, n: u64) -> Result<()> {
-        let mut from = super::journal::Decoder::open(journal)?;
-        let mut to = Encoder::create_unjournaled(&self.path, self.width, self.height)?;
-        let mut buf = Vec::with_capacity(CHUNK);
-        let mut left = n;
-        while left > 0 {
-            buf.clear();
-            let want = CHUNK.min(usize::try_from(left).unwrap_or(CHUNK));
-            let got = from.read_events(&mut buf, want)?;
-            if got == 0 {
-                return Err(bad(format!("the journal ends {left} events short")));
-            }
-            buf.truncate(want);
-            to.write(&buf)?;
-            left = left.saturating_sub(buf.len() as u64);
+/// Writes `path` without a journal from the first `n` (at most) events of `journal`, for a
+/// sensor of `size` (`None`: the journal's); returns the events written.
+fn write_journal(journal: &Path, path: &Path, size: Option<(u16, u16)>, n: u64) -> Result<u64> {
+    let mut from = super::journal::Decoder::open(journal)?;
+    let (w, h) = size.or(from.size()).unwrap_or((0, 0));
+    let mut to = Encoder::create_unjournaled(path, w, h)?;
+    let mut buf = Vec::with_capacity(CHUNK);
+    let mut written = 0u64;
+    while written < n {
+        buf.clear();
+        let want = CHUNK.min(usize::try_from(n - written).unwrap_or(CHUNK));
+        if from.read_events(&mut buf, want)? == 0 {
+            break;
         }
-        to.finish()
+        buf.truncate(want);
+        to.write(&buf)?;
+        written += buf.len() as u64;
     }
+    to.finish()?;
+    Ok(written)
 }
 
 /// Opens `NAME` (a path from the root), checks it is a 1-D integer dataset whose filters this
