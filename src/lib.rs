@@ -36,6 +36,7 @@ pub(crate) mod plot;
 pub(crate) mod process;
 pub(crate) mod realtime;
 pub mod reconstruct;
+pub mod ros2;
 pub mod render;
 pub mod repair;
 pub(crate) mod rounding;

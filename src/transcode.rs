@@ -127,7 +127,7 @@ pub struct Summary {
     /// Last event time (us).
     pub last_t: Option<i64>,
     /// The file's format: `AEDAT 4.0`, `EVT 2.0`, `EVT 3.0`, `CSV`, `V2CE toolbox .npz`,
-    /// `HDF5 (DSEC layout)`, `IJRR text`.
+    /// `HDF5 (DSEC layout)`, `rosbag2 MCAP (EventPacket, EVT 3.0)`, `IJRR text`.
     pub format: String,
     /// Packet compression (AEDAT 4.0), or the HDF5 filters of `events/t` (`shuffle+deflate`).
     pub compression: Option<String>,
@@ -179,6 +179,7 @@ fn describe_file(path: &Path) -> Result<(String, Option<String>, Option<i64>)> {
                 Some(d.t_offset()),
             )
         }
+        "mcap" => ("rosbag2 MCAP (EventPacket, EVT 3.0)".into(), None, None),
         _ => ("IJRR text".into(), None, None),
     })
 }

@@ -12,6 +12,9 @@ use crate::error::{Error, Result};
 /// events it then holds (read through with this program's decoder).
 pub fn cut_in_place(path: &Path) -> Result<u64> {
     let format = Format::for_output(path, None, super::Compression::default())?;
+    if format == Format::Mcap {
+        return super::mcap::close_in_place(path);
+    }
     let len = std::fs::metadata(path)
         .map_err(|e| Error::io(path, e))?
         .len();
@@ -124,7 +127,8 @@ pub fn whole_prefix(path: &Path, format: Format) -> Result<u64> {
             }
             Ok(cut)
         }
-        Format::Npz | Format::Hdf5 => Ok(len),
+        // Closed by their own rules: `.npz`/`.h5` from a journal, `.mcap` in `cut_in_place`.
+        Format::Npz | Format::Hdf5 | Format::Mcap => Ok(len),
     }
 }
 

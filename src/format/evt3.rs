@@ -59,6 +59,8 @@ pub struct Decoder<R> {
     t: i64,
     word: u64,
     buf: Vec<u8>,
+    /// The next time-high word is taken whatever it is (a packet read alone).
+    free_high: bool,
 }
 
 impl<R: Read> Decoder<R> {
@@ -76,7 +78,23 @@ impl<R: Read> Decoder<R> {
             t: header.time_offset,
             word: 0,
             buf: vec![0; 16384],
+            free_high: false,
         }
+    }
+
+    /// A decoder of one self-contained packet of words (no header): its first time-high word
+    /// sets the time whatever it is, and times count from 0 at that word's epoch.
+    pub fn packet(reader: R, size: Option<(u16, u16)>) -> Self {
+        let mut d = Decoder::new(
+            reader,
+            &raw::Header {
+                size,
+                ..raw::Header::default()
+            },
+        );
+        d.buf = vec![0; 4096];
+        d.free_high = true;
+        d
     }
 
     fn update_time(&mut self) {
@@ -86,6 +104,12 @@ impl<R: Read> Decoder<R> {
     }
 
     fn time_high(&mut self, high: u16) {
+        if std::mem::take(&mut self.free_high) {
+            self.time_high = high;
+            self.time_low = 0;
+            self.update_time();
+            return;
+        }
         let prev = self.time_high;
         let accept = if high > prev {
             high - prev < WRAP_STEP
@@ -159,43 +183,45 @@ impl<R: Read> EventDecoder for Decoder<R> {
     }
 }
 
-/// Writes EVT 3.0: the header on the first write, then state-change and event words.
-pub struct Encoder<W: Write> {
-    writer: W,
-    header: raw::LazyHeader,
+/// The EVT 3.0 words of events, with the state they share across calls (time-high, time-low,
+/// row): what [`Encoder`] writes after its header, and each self-contained packet of
+/// [`super::event_packet`] ([`Words::restart`]).
+#[derive(Debug, Clone)]
+pub struct Words {
     /// `(t - offset) >> 12` of the last time-high word, unwrapped.
     time_high: Option<i64>,
     time_low: Option<u16>,
     y: Option<u16>,
     last_t: i64,
-    words: Vec<u8>,
 }
 
-impl<W: Write> Encoder<W> {
-    /// An encoder for a `width x height` sensor (at most 2048 x 2048).
-    pub fn new(writer: W, width: u16, height: u16) -> Result<Self> {
-        Ok(Encoder {
-            writer,
-            header: raw::LazyHeader::new(Evt::Evt3, width, height)?,
+impl Default for Words {
+    fn default() -> Self {
+        Words {
             time_high: None,
             time_low: None,
             y: None,
             last_t: i64::MIN,
-            words: Vec::new(),
-        })
+        }
+    }
+}
+
+fn word(out: &mut Vec<u8>, w: u16) {
+    out.extend_from_slice(&w.to_le_bytes());
+}
+
+impl Words {
+    /// Starts a unit a decoder can read alone: the current time-high word again, and the
+    /// time-low and row written again before the next event.
+    pub fn restart(&mut self, out: &mut Vec<u8>) {
+        if let Some(h) = self.time_high {
+            word(out, 0x8000 | (h & 0xFFF) as u16);
+        }
+        self.time_low = None;
+        self.y = None;
     }
 
-    fn header(&mut self, first_t: i64) -> Result<i64> {
-        self.header
-            .offset(&mut self.writer, first_t)
-            .map_err(output_error)
-    }
-
-    fn word(&mut self, w: u16) {
-        self.words.extend_from_slice(&w.to_le_bytes());
-    }
-
-    fn set_time(&mut self, rel: i64) {
+    fn set_time(&mut self, rel: i64, out: &mut Vec<u8>) {
         let target = rel >> 12;
         let low = (rel & 0xFFF) as u16;
         let mut high = match self.time_high {
@@ -203,7 +229,7 @@ impl<W: Write> Encoder<W> {
             None => {
                 // Start at the epoch's 0, which every reader accepts as a first word.
                 let start = target & !0xFFF;
-                self.word(0x8000);
+                word(out, 0x8000);
                 start
             }
         };
@@ -213,22 +239,102 @@ impl<W: Write> Encoder<W> {
             let stop = target.min(epoch_end);
             while stop - high > MAX_STEP {
                 high += MAX_STEP;
-                self.word(0x8000 | (high & 0xFFF) as u16);
+                word(out, 0x8000 | (high & 0xFFF) as u16);
             }
             if high != stop {
                 high = stop;
-                self.word(0x8000 | (high & 0xFFF) as u16);
+                word(out, 0x8000 | (high & 0xFFF) as u16);
             }
             if high != target {
                 high += 1;
-                self.word(0x8000);
+                word(out, 0x8000);
             }
         }
         self.time_high = Some(high);
         if changed || self.time_low != Some(low) {
-            self.word(0x6000 | low);
+            word(out, 0x6000 | low);
             self.time_low = Some(low);
         }
+    }
+
+    /// Appends the words of `events` (in time order, inside a `width x height` sensor: checked)
+    /// at times relative to `offset` to `out`.
+    pub fn encode(
+        &mut self,
+        events: &[Event],
+        offset: i64,
+        width: u16,
+        height: u16,
+        out: &mut Vec<u8>,
+    ) -> Result<()> {
+        let mut last = self.last_t;
+        for e in events {
+            check_event(e, last, width, height)?;
+            last = e.t;
+        }
+        out.reserve(events.len() * 2 + 16);
+        let mut i = 0;
+        while i < events.len() {
+            let e = events[i];
+            // Not `last_t != i64::MIN`: a first event may be at i64::MIN itself.
+            if self.time_high.is_some() {
+                super::raw::check_gap(self.last_t, e.t, "EVT 3.0")?;
+            }
+            self.last_t = e.t;
+            self.set_time(e.t - offset, out);
+            if self.y != Some(e.y) {
+                word(out, e.y);
+                self.y = Some(e.y);
+            }
+            let pol = (e.on as u16) << 11;
+            let run = &events[i..i + run_len(&events[i..])];
+            let first_block = run.iter().take_while(|r| r.x < e.x + 12).count();
+            if first_block < 3 {
+                word(out, 0x2000 | pol | e.x);
+                i += 1;
+                continue;
+            }
+            word(out, 0x3000 | pol | e.x);
+            let mut base = e.x;
+            let mut k = 0;
+            while k < run.len() && run[k].x < base + 12 {
+                let mut mask = 0u16;
+                while k < run.len() && run[k].x < base + 12 {
+                    mask |= 1 << (run[k].x - base);
+                    k += 1;
+                }
+                word(out, 0x4000 | mask);
+                base += 12;
+            }
+            i += k;
+        }
+        Ok(())
+    }
+}
+
+/// Writes EVT 3.0: the header on the first write, then state-change and event words.
+pub struct Encoder<W: Write> {
+    writer: W,
+    header: raw::LazyHeader,
+    state: Words,
+    words: Vec<u8>,
+}
+
+impl<W: Write> Encoder<W> {
+    /// An encoder for a `width x height` sensor (at most 2048 x 2048).
+    pub fn new(writer: W, width: u16, height: u16) -> Result<Self> {
+        Ok(Encoder {
+            writer,
+            header: raw::LazyHeader::new(Evt::Evt3, width, height)?,
+            state: Words::default(),
+            words: Vec::new(),
+        })
+    }
+
+    fn header(&mut self, first_t: i64) -> Result<i64> {
+        self.header
+            .offset(&mut self.writer, first_t)
+            .map_err(output_error)
     }
 
     /// The writer, e.g. to take the bytes written so far from a `Vec<u8>`.
@@ -270,47 +376,8 @@ impl<W: Write> EventEncoder for Encoder<W> {
         };
         let offset = self.header(first.t)?;
         self.words.clear();
-        self.words.reserve(events.len() * 2 + 16);
-        let mut last = self.last_t;
-        for e in events {
-            check_event(e, last, self.header.width, self.header.height)?;
-            last = e.t;
-        }
-        let mut i = 0;
-        while i < events.len() {
-            let e = events[i];
-            // Not `last_t != i64::MIN`: a first event may be at i64::MIN itself.
-            if self.time_high.is_some() {
-                super::raw::check_gap(self.last_t, e.t, "EVT 3.0")?;
-            }
-            self.last_t = e.t;
-            self.set_time(e.t - offset);
-            if self.y != Some(e.y) {
-                self.word(e.y);
-                self.y = Some(e.y);
-            }
-            let pol = (e.on as u16) << 11;
-            let run = &events[i..i + run_len(&events[i..])];
-            let first_block = run.iter().take_while(|r| r.x < e.x + 12).count();
-            if first_block < 3 {
-                self.word(0x2000 | pol | e.x);
-                i += 1;
-                continue;
-            }
-            self.word(0x3000 | pol | e.x);
-            let mut base = e.x;
-            let mut k = 0;
-            while k < run.len() && run[k].x < base + 12 {
-                let mut mask = 0u16;
-                while k < run.len() && run[k].x < base + 12 {
-                    mask |= 1 << (run[k].x - base);
-                    k += 1;
-                }
-                self.word(0x4000 | mask);
-                base += 12;
-            }
-            i += k;
-        }
+        let (w, h) = (self.header.width, self.header.height);
+        self.state.encode(events, offset, w, h, &mut self.words)?;
         self.writer.write_all(&self.words).map_err(output_error)
     }
 

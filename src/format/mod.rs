@@ -7,6 +7,7 @@
 //! | `.csv` | [`csv`] | `t_us,x,y,on`, read and written | - |
 //! | `.npz` | [`npz`] | the V2CE toolbox's `event_stream` record array, read and written | - |
 //! | `.h5`, `.hdf5` | [`hdf5`] | DSEC layout (`events/x,y,t,p`, `ms_to_idx`, `t_offset`), read and written (gzip) | - |
+//! | `.mcap` | [`mcap`] | rosbag2: `event_camera_msgs/msg/EventPacket` (EVT 3.0 payloads, [`event_packet`]), read and written | - |
 //! | `.txt` | [`ijrr`] | `events.txt` (`t_seconds x y polarity`), read | `images.txt` (`t_seconds path`) |
 //!
 //! The UDP datagram word layouts (`spif` and faery's) are in [`datagram`].
@@ -19,10 +20,12 @@ pub mod csv;
 pub mod cut;
 pub mod datagram;
 pub mod evt2;
+pub mod event_packet;
 pub mod evt3;
 pub mod hdf5;
 pub mod ijrr;
 pub mod journal;
+pub mod mcap;
 pub mod npz;
 pub mod raw;
 
@@ -146,6 +149,8 @@ pub enum Format {
     Npz,
     /// HDF5 in the DSEC layout (`.h5`, `.hdf5`).
     Hdf5,
+    /// A rosbag2 `.mcap` of ROS 2 EventPacket messages (EVT 3.0 payloads).
+    Mcap,
 }
 
 impl Format {
@@ -165,17 +170,18 @@ impl Format {
             ("csv", _) => Ok(Format::Csv),
             ("npz", _) => Ok(Format::Npz),
             ("h5" | "hdf5", _) => Ok(Format::Hdf5),
+            ("mcap", _) => Ok(Format::Mcap),
             (other, _) => Err(Error::invalid(
                 "output file",
                 format!(
-                    "{}: unknown extension '.{other}' (expected .aedat4, .raw, .csv, .npz, .h5 or .hdf5)",
+                    "{}: unknown extension '.{other}' (expected .aedat4, .raw, .csv, .npz, .h5, .hdf5 or .mcap)",
                     path.display()
                 ),
             )),
         }
     }
 
-    /// A short name: `aedat4`, `evt2`, `evt3`, `csv`, `npz`, `hdf5`.
+    /// A short name: `aedat4`, `evt2`, `evt3`, `csv`, `npz`, `hdf5`, `mcap`.
     pub fn name(self) -> &'static str {
         match self {
             Format::Aedat4(_) => "aedat4",
@@ -184,6 +190,7 @@ impl Format {
             Format::Csv => "csv",
             Format::Npz => "npz",
             Format::Hdf5 => "hdf5",
+            Format::Mcap => "mcap",
         }
     }
 }
@@ -264,11 +271,12 @@ fn open_checked(path: &Path, check_times: bool) -> Result<Box<dyn EventDecoder +
             Box::new(hdf5::Decoder::open(path).map_err(wrap)?)
         }
         "txt" => Box::new(ijrr::Decoder::new(reader)),
+        "mcap" => Box::new(mcap::Decoder::new(reader, None).map_err(wrap)?),
         other => {
             return Err(Error::format(
                 path,
                 format!(
-                "unknown event file type '.{other}' (expected .aedat4, .raw, .csv, .npz, .h5, .hdf5 or .txt)"
+                "unknown event file type '.{other}' (expected .aedat4, .raw, .csv, .npz, .h5, .hdf5, .mcap or .txt)"
             ),
             ))
         }
@@ -413,6 +421,7 @@ pub fn create(
         Format::Npz => Box::new(npz::Encoder::new(path, width, height).map_err(wrap)?),
         // The HDF5 library creates the file itself.
         Format::Hdf5 => Box::new(hdf5::Encoder::create(path, width, height).map_err(wrap)?),
+        Format::Mcap => Box::new(mcap::Encoder::new(buffered()?, width, height).map_err(wrap)?),
     };
     Ok(Box::new(FileEncoder {
         path: path.to_path_buf(),

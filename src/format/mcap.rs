@@ -1,0 +1,380 @@
+//! rosbag2 files in MCAP (`.mcap`, ROS 2's default bag storage): events as CDR-encoded
+//! `event_camera_msgs/msg/EventPacket` messages ([`super::event_packet`]) on
+//! [`DEFAULT_TOPIC`], the message definitions stored as the channel's `ros2msg` schema, as
+//! `ros2 bag record` writes them. The container is the `mcap` crate's.
+//!
+//! The writer writes the messages unchunked (each record whole in the file as it goes), so a
+//! run cut short by a full disk keeps every whole message: [`close_in_place`] cuts the file after the
+//! last whole record and closes it with a data end, a footer and the magic.
+//!
+//! The reader takes the EventPacket messages of one topic (the first such topic in the file,
+//! or the one asked for) in file order; frames in `sensor_msgs/msg/Image` messages are
+//! [`crate::frame::bag`]'s. Chunks compressed with zstd or lz4 are not read (an error says so).
+
+use std::collections::BTreeMap;
+use std::io::{BufReader, Read, Seek, SeekFrom, Write};
+use std::path::Path;
+
+use super::event_packet::{unpack, Packetizer};
+use super::{EventDecoder, EventEncoder};
+use crate::error::{Error, Result};
+use crate::event::Event;
+use crate::ros2::msg::{self, EventPacket};
+
+/// The topic v2ce's bags put events on.
+pub const DEFAULT_TOPIC: &str = "/event_camera/events";
+
+/// The frame id of v2ce's packets.
+pub const DEFAULT_FRAME_ID: &str = "event_camera";
+
+/// The span of one packet in a bag, us (as the `ros2` sink's default).
+pub const PACKET_US: i64 = 1000;
+
+const MAGIC: &[u8; 8] = b"\x89MCAP0\r\n";
+
+fn mcap_error(what: &str, e: impl std::fmt::Display) -> Error {
+    Error::invalid("MCAP", format!("{what}: {e}"))
+}
+
+/// A stamp in nanoseconds for the message's log time (0 for times before 1970).
+fn log_time(p: &EventPacket) -> u64 {
+    (p.header.stamp.sec.max(0) as u64) * 1_000_000_000 + p.header.stamp.nanosec as u64
+}
+
+/// Writes events as a rosbag2 `.mcap`.
+pub struct Encoder<W: Write + Seek> {
+    writer: Option<mcap::Writer<W>>,
+    channel: u16,
+    packets: Packetizer,
+    ready: Vec<EventPacket>,
+}
+
+impl<W: Write + Seek> Encoder<W> {
+    /// A bag of a `width x height` sensor's events (at most 2048 a side, as EVT 3.0).
+    pub fn new(writer: W, width: u16, height: u16) -> Result<Self> {
+        let packets = Packetizer::new(width, height, DEFAULT_FRAME_ID, PACKET_US)?;
+        let options = mcap::WriteOptions::new()
+            .profile("ros2")
+            .library(concat!("v2ce ", env!("CARGO_PKG_VERSION")))
+            .compression(None)
+            .use_chunks(false)
+            .disable_seeking(true);
+        let mut w = options
+            .create(writer)
+            .map_err(|e| mcap_error("starting the file", e))?;
+        let schema = w
+            .add_schema(
+                msg::EVENT_PACKET,
+                "ros2msg",
+                msg::event_packet_definition().as_bytes(),
+            )
+            .map_err(|e| mcap_error("schema", e))?;
+        let mut metadata = BTreeMap::new();
+        metadata.insert("offered_qos_profiles".to_string(), String::new());
+        let channel = w
+            .add_channel(schema, DEFAULT_TOPIC, "cdr", &metadata)
+            .map_err(|e| mcap_error("channel", e))?;
+        Ok(Encoder {
+            writer: Some(w),
+            channel,
+            packets,
+            ready: Vec::new(),
+        })
+    }
+
+    fn write_ready(&mut self) -> Result<()> {
+        let Some(w) = self.writer.as_mut() else {
+            return Err(Error::invalid("MCAP output", "already finished"));
+        };
+        for p in self.ready.drain(..) {
+            let t = log_time(&p);
+            let header = mcap::records::MessageHeader {
+                channel_id: self.channel,
+                sequence: p.seq as u32,
+                log_time: t,
+                publish_time: t,
+            };
+            w.write_to_known_channel(&header, &p.to_cdr())
+                .map_err(|e| mcap_error("writing a message", e))?;
+        }
+        Ok(())
+    }
+}
+
+impl<W: Write + Seek> EventEncoder for Encoder<W> {
+    fn write(&mut self, events: &[Event]) -> Result<()> {
+        self.packets.push(events, &mut self.ready)?;
+        self.write_ready()
+    }
+
+    fn finish(&mut self) -> Result<()> {
+        self.packets.close(&mut self.ready);
+        self.write_ready()?;
+        if let Some(mut w) = self.writer.take() {
+            w.finish().map_err(|e| mcap_error("closing the file", e))?;
+            w.into_inner()
+                .flush()
+                .map_err(|e| mcap_error("closing the file", e))?;
+        }
+        Ok(())
+    }
+
+    fn flush(&mut self) -> Result<()> {
+        self.packets.close(&mut self.ready);
+        self.write_ready()?;
+        if let Some(w) = self.writer.as_mut() {
+            w.flush().map_err(|e| mcap_error("flushing", e))?;
+        }
+        Ok(())
+    }
+
+    fn salvage(&mut self) -> Result<Option<u64>> {
+        // The writer (and its buffer, past the cut) is dropped by the caller's seal.
+        Ok(None)
+    }
+}
+
+/// Reads the EventPacket messages of one topic as events.
+pub struct Decoder<R: Read> {
+    messages: mcap::io::MessageReader<R>,
+    topic: Option<String>,
+    size: Option<(u16, u16)>,
+    pending: Vec<Event>,
+    taken: usize,
+    last_t: i64,
+    /// Events at pixels outside a packet's sensor, dropped.
+    pub off_sensor: u64,
+    skipped_topics: Vec<String>,
+}
+
+impl Decoder<BufReader<std::fs::File>> {
+    /// Opens a bag; `topic` chooses the events' topic (else the first EventPacket topic).
+    pub fn open(path: &Path, topic: Option<&str>) -> Result<Self> {
+        let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+        Decoder::new(BufReader::with_capacity(1 << 16, file), topic)
+    }
+}
+
+/// The options every bag is read with: a record may claim no more than a chunk may.
+pub fn read_options() -> mcap::sans_io::LinearReaderOptions {
+    mcap::sans_io::LinearReaderOptions::default()
+        .with_record_length_limit(crate::limits::MAX_CHUNK_BYTES as usize)
+}
+
+impl<R: Read> Decoder<R> {
+    /// A decoder over a bag's bytes; reads up to the first packet to learn the sensor's size.
+    pub fn new(reader: R, topic: Option<&str>) -> Result<Self> {
+        let mut d = Decoder {
+            messages: mcap::io::MessageReader::new_with_options(reader, read_options()),
+            topic: topic.map(str::to_string),
+            size: None,
+            pending: Vec::new(),
+            taken: 0,
+            last_t: i64::MIN,
+            off_sensor: 0,
+            skipped_topics: Vec::new(),
+        };
+        d.fill()?;
+        Ok(d)
+    }
+
+    /// Reads messages until one holds events (or the end); false at the end.
+    fn fill(&mut self) -> Result<bool> {
+        self.pending.clear();
+        self.taken = 0;
+        while self.pending.is_empty() {
+            let Some(m) = self.messages.next() else {
+                return Ok(false);
+            };
+            let m = m.map_err(|e| mcap_error("reading", e))?;
+            let is_packets = m
+                .channel
+                .schema
+                .as_ref()
+                .is_some_and(|s| s.name == msg::EVENT_PACKET);
+            if !is_packets {
+                continue;
+            }
+            match &self.topic {
+                None => self.topic = Some(m.channel.topic.clone()),
+                Some(t) if *t != m.channel.topic => {
+                    if !self.skipped_topics.contains(&m.channel.topic) {
+                        tracing::warn!(
+                            "{}: EventPacket messages on {} too; reading {t} only",
+                            "MCAP",
+                            m.channel.topic
+                        );
+                        self.skipped_topics.push(m.channel.topic.clone());
+                    }
+                    continue;
+                }
+                Some(_) => {}
+            }
+            if m.channel.message_encoding != "cdr" {
+                return Err(mcap_error(
+                    "channel",
+                    format!(
+                        "{} holds '{}' messages (v2ce reads cdr)",
+                        m.channel.topic, m.channel.message_encoding
+                    ),
+                ));
+            }
+            let p = EventPacket::from_cdr(&m.data).map_err(|e| {
+                mcap_error(&format!("message {} on {}", m.sequence, m.channel.topic), e)
+            })?;
+            let size = (p.width as u16, p.height as u16);
+            let u = unpack(&p, &mut self.pending)?;
+            self.off_sensor += u.off_sensor;
+            if u.events > 0 && self.size.is_none() {
+                self.size = Some(size);
+            }
+            // Packets whose stamps step back a little (a driver's stamps) are kept in order.
+            for e in &mut self.pending {
+                e.t = e.t.max(self.last_t);
+                self.last_t = e.t;
+            }
+        }
+        Ok(true)
+    }
+}
+
+impl<R: Read> EventDecoder for Decoder<R> {
+    fn size(&self) -> Option<(u16, u16)> {
+        self.size
+    }
+
+    fn read_events(&mut self, out: &mut Vec<Event>, max: usize) -> Result<usize> {
+        if self.taken == self.pending.len() && !self.fill()? {
+            return Ok(0);
+        }
+        let n = max.min(self.pending.len() - self.taken);
+        out.extend_from_slice(&self.pending[self.taken..self.taken + n]);
+        self.taken += n;
+        Ok(n)
+    }
+}
+
+fn count_events(path: &Path) -> Result<u64> {
+    let mut d = Decoder::open(path, None)?;
+    let (mut n, mut buf) = (0u64, Vec::new());
+    loop {
+        buf.clear();
+        match d.read_events(&mut buf, 1 << 16)? {
+            0 => return Ok(n),
+            k => n += k as u64,
+        }
+    }
+}
+
+/// Closes a bag whose writing stopped (a full disk, a killed run) in place: a bag that reads
+/// whole is left as it is; another is cut after its last whole record and closed with a data
+/// end, a footer and the magic (51 bytes; where even those do not fit, one more message is
+/// cut away). Returns the events it then holds. A file that does not start with the magic is
+/// refused.
+pub fn close_in_place(path: &Path) -> Result<u64> {
+    if let Ok(n) = count_events(path) {
+        return Ok(n);
+    }
+    let mut f = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(path)
+        .map_err(|e| Error::io(path, e))?;
+    let len = f.metadata().map_err(|e| Error::io(path, e))?.len();
+    let mut r = BufReader::new(&mut f);
+    let mut magic = [0u8; 8];
+    if r.read_exact(&mut magic).is_err() || &magic != MAGIC {
+        return Err(Error::format(path, "not an MCAP file (no magic)"));
+    }
+    // Walk the records: opcode (1 byte), length (u64), body; keep where each one ends.
+    let mut ends = Vec::new();
+    let mut end = 8u64;
+    loop {
+        let mut head = [0u8; 9];
+        if end + 9 > len || r.read_exact(&mut head).is_err() {
+            break;
+        }
+        // A data end or footer: the writer had begun closing; cut there.
+        if head[0] == 0x0F || head[0] == 0x02 {
+            break;
+        }
+        let body = u64::from_le_bytes(head[1..9].try_into().unwrap_or_default());
+        let Some(next) = (end + 9).checked_add(body).filter(|n| *n <= len) else {
+            break;
+        };
+        r.seek_relative(body as i64)
+            .map_err(|e| Error::io(path, e))?;
+        end = next;
+        ends.push(end);
+    }
+    drop(r);
+    let mut tail = Vec::new();
+    // Data end: opcode 0x0F, length 4, data section CRC 0 (not checked).
+    tail.push(0x0F);
+    tail.extend_from_slice(&4u64.to_le_bytes());
+    tail.extend_from_slice(&0u32.to_le_bytes());
+    // Footer: opcode 0x02, length 20, no summary.
+    tail.push(0x02);
+    tail.extend_from_slice(&20u64.to_le_bytes());
+    tail.extend_from_slice(&[0u8; 20]);
+    tail.extend_from_slice(MAGIC);
+    loop {
+        let closed = f
+            .set_len(end)
+            .and_then(|_| f.seek(SeekFrom::Start(end)))
+            .and_then(|_| f.write_all(&tail))
+            .and_then(|_| f.sync_all());
+        match closed {
+            Ok(()) => break,
+            Err(e) => {
+                // No room for the closing bytes: give up the last message and try again.
+                match ends.iter().rev().find(|e| **e < end) {
+                    Some(&before) if e.raw_os_error() == Some(libc::ENOSPC) => end = before,
+                    _ => return Err(Error::io(path, e)),
+                }
+            }
+        }
+    }
+    drop(f);
+    count_events(path)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_bag_round_trips_and_a_cut_one_is_closed_with_its_whole_messages() {
+        let events: Vec<Event> = (0..20_000)
+            .map(|i| Event::new(i * 13, (i % 300) as u16, (i % 200) as u16, i % 2 == 0))
+            .collect();
+        let dir = std::env::temp_dir().join(format!("v2ce-mcap-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("a.mcap");
+        let file = std::fs::File::create(&path).unwrap();
+        let mut enc = Encoder::new(std::io::BufWriter::new(file), 320, 240).unwrap();
+        enc.write(&events[..7000]).unwrap();
+        enc.write(&events[7000..]).unwrap();
+        enc.finish().unwrap();
+        drop(enc);
+        let mut d = Decoder::open(&path, None).unwrap();
+        assert_eq!(d.size(), Some((320, 240)));
+        let mut back = Vec::new();
+        while d.read_events(&mut back, 4096).unwrap() > 0 {}
+        assert_eq!(back, events);
+        assert!(Decoder::open(&path, Some("/other")).is_ok());
+
+        // Cut in the middle of a message: closed with the messages before it.
+        let bytes = std::fs::read(&path).unwrap();
+        let cut = dir.join("b.mcap");
+        std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+        let n = close_in_place(&cut).unwrap();
+        assert!(n > 0 && n < events.len() as u64, "{n}");
+        let mut d = Decoder::open(&cut, None).unwrap();
+        let mut again = Vec::new();
+        while d.read_events(&mut again, 4096).unwrap() > 0 {}
+        assert_eq!(again.len() as u64, n);
+        assert_eq!(&again[..], &events[..n as usize]);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}
