@@ -49,6 +49,20 @@ pub struct RunArgs {
     /// [config default: 10, when the process may].
     #[arg(long)]
     pub(crate) emit_priority: Option<u8>,
+    /// Publish events on this ROS 2 topic as event_camera_msgs/msg/EventPacket (evt3) over DDS
+    /// [config default: "", off; a `[[sink]]` of type "ros2" defaults to /event_camera/events].
+    #[arg(long, value_name = "TOPIC")]
+    pub(crate) ros2: Option<String>,
+    /// The ROS 2 output's DDS domain [config default: ROS_DOMAIN_ID, else 0].
+    #[arg(long, value_name = "ID")]
+    pub(crate) ros2_domain_id: Option<u32>,
+    /// The ROS 2 output's delivery: reliable or best-effort [config default: reliable].
+    #[arg(long, value_enum)]
+    pub(crate) ros2_reliability: Option<crate::sink::ros2::Reliability>,
+    /// Hold the ROS 2 output's first packet until this many subscribers are matched
+    /// [config default: 0].
+    #[arg(long, value_name = "N")]
+    pub(crate) ros2_wait_subscribers: Option<u32>,
     /// Sensor preset of the physics tier: davis346, dvxplorer, ideal [config default: davis346].
     #[arg(long)]
     pub(crate) preset: Option<String>,
@@ -177,12 +191,18 @@ pub fn run_config(args: &RunArgs) -> Result<Config> {
         parts.tcp.address => args.tcp,
         parts.tcp.format => args.tcp_format,
         parts.out.path => args.out,
+        parts.ros2.topic => args.ros2,
+        parts.ros2.reliability => args.ros2_reliability,
+        parts.ros2.wait_subscribers => args.ros2_wait_subscribers,
         run.duration => args.duration,
         run.max_frames => args.max_frames,
         run.stats_interval => args.stats_interval,
         run.http => args.http,
         run.ready_timeout => args.ready_timeout,
     );
+    if let Some(d) = args.ros2_domain_id {
+        parts.ros2.domain_id = Some(d);
+    }
     if let Some(v) = &args.udp_format {
         parts.udp.format = crate::format::datagram::UdpFormat::from_name(v)?;
     }

@@ -15,6 +15,7 @@ use serde::{Deserialize, Deserializer};
 use crate::error::{Error, Result};
 use crate::pipeline::queue::QueuePolicy;
 use crate::sink::file::FileSinkConfig;
+use crate::sink::ros2::Ros2SinkConfig;
 use crate::sink::tcp::TcpSinkConfig;
 use crate::sink::udp::UdpSinkConfig;
 use crate::sink::SinkConfig;
@@ -104,6 +105,8 @@ pub struct Parts {
     pub tcp: TcpSinkConfig,
     /// `out` (the path, off by default) and `out_evt`.
     pub out: FileSinkConfig,
+    /// `ros2` (the topic, off by default) and `ros2_KEY` (`ros2_domain_id`, `ros2_depth`, ...).
+    pub ros2: Ros2SinkConfig,
 }
 
 impl Default for Parts {
@@ -116,6 +119,10 @@ impl Default for Parts {
             },
             tcp: TcpSinkConfig::default(),
             out: FileSinkConfig::default(),
+            ros2: Ros2SinkConfig {
+                topic: String::new(),
+                ..Ros2SinkConfig::default()
+            },
         }
     }
 }
@@ -127,10 +134,11 @@ enum Kind {
     Udp,
     Tcp,
     Out,
+    Ros2,
 }
 
 impl Kind {
-    const ALL: [Kind; 4] = [Kind::Source, Kind::Udp, Kind::Tcp, Kind::Out];
+    const ALL: [Kind; 5] = [Kind::Source, Kind::Udp, Kind::Tcp, Kind::Out, Kind::Ros2];
 
     /// For an output: the key that names its address or path (and the prefix of its other
     /// keys), and the field that key fills. The source's keys are its fields' names.
@@ -140,6 +148,7 @@ impl Kind {
             Kind::Udp => Some(("udp", "address")),
             Kind::Tcp => Some(("tcp", "address")),
             Kind::Out => Some(("out", "path")),
+            Kind::Ros2 => Some(("ros2", "topic")),
         }
     }
 
@@ -150,6 +159,7 @@ impl Kind {
             Kind::Udp => crate::toml_doc::keys::<UdpSinkConfig>(),
             Kind::Tcp => crate::toml_doc::keys::<TcpSinkConfig>(),
             Kind::Out => crate::toml_doc::keys::<FileSinkConfig>(),
+            Kind::Ros2 => crate::toml_doc::keys::<Ros2SinkConfig>(),
         }
     }
 
@@ -173,7 +183,7 @@ impl Kind {
 }
 
 impl Parts {
-    /// The outputs that are on, UDP first, then TCP, then the file.
+    /// The outputs that are on, UDP first, then TCP, then the file, then ROS 2.
     pub fn sinks(&self) -> Vec<SinkConfig> {
         let mut sinks = Vec::new();
         if !self.udp.address.is_empty() {
@@ -184,6 +194,9 @@ impl Parts {
         }
         if !self.out.path.is_empty() {
             sinks.push(SinkConfig::File(self.out.clone()));
+        }
+        if !self.ros2.topic.is_empty() {
+            sinks.push(SinkConfig::Ros2(self.ros2.clone()));
         }
         sinks
     }
@@ -211,6 +224,7 @@ impl<'de> Deserialize<'de> for Parts {
                 Kind::Udp => defaults.udp.address.clone(),
                 Kind::Tcp => defaults.tcp.address.clone(),
                 Kind::Out => defaults.out.path.clone(),
+                Kind::Ros2 => defaults.ros2.topic.clone(),
             };
             if let Some((_, field)) = kind.address() {
                 table.insert(field.into(), address.into());
@@ -227,12 +241,13 @@ impl<'de> Deserialize<'de> for Parts {
             };
             tables[kind as usize].insert(field.into(), value);
         }
-        let [source, udp, tcp, out] = tables;
+        let [source, udp, tcp, out, ros2] = tables;
         Ok(Parts {
             source: fill(Kind::Source, source)?,
             udp: fill(Kind::Udp, udp)?,
             tcp: fill(Kind::Tcp, tcp)?,
             out: fill(Kind::Out, out)?,
+            ros2: fill(Kind::Ros2, ros2)?,
         })
     }
 }

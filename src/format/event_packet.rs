@@ -40,7 +40,20 @@ pub struct Packetizer {
 #[derive(Debug)]
 struct Open {
     first_t: i64,
+    last_t: i64,
+    events: usize,
     bytes: Vec<u8>,
+}
+
+/// A packet made, with what a sender needs to know of it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Packet {
+    /// The message.
+    pub msg: EventPacket,
+    /// Its last event's time, us: it is due to leave then.
+    pub last_t: i64,
+    /// Events it holds.
+    pub events: usize,
 }
 
 impl Packetizer {
@@ -50,11 +63,16 @@ impl Packetizer {
         if width == 0 || height == 0 || width as u32 > MAX_SIDE || height as u32 > MAX_SIDE {
             return Err(Error::invalid(
                 "event packet",
-                format!("EVT 3.0 holds 1 to 2048 columns and rows; {width} x {height} does not fit"),
+                format!(
+                    "EVT 3.0 holds 1 to 2048 columns and rows; {width} x {height} does not fit"
+                ),
             ));
         }
         if packet_us < 1 {
-            return Err(Error::invalid("packet_us", format!("{packet_us} (at least 1)")));
+            return Err(Error::invalid(
+                "packet_us",
+                format!("{packet_us} (at least 1)"),
+            ));
         }
         Ok(Packetizer {
             width,
@@ -82,7 +100,7 @@ impl Packetizer {
 
     /// Adds events (in time order, after every event before), appending each packet that
     /// they close to `out`.
-    pub fn push(&mut self, events: &[Event], out: &mut Vec<EventPacket>) -> Result<()> {
+    pub fn push(&mut self, events: &[Event], out: &mut Vec<Packet>) -> Result<()> {
         let mut i = 0;
         while i < events.len() {
             let t = events[i].t;
@@ -100,7 +118,12 @@ impl Packetizer {
                     .get_or_insert_with(|| super::raw::time_offset_for(super::raw::Evt::Evt3, t));
                 let mut bytes = Vec::new();
                 self.words.restart(&mut bytes);
-                self.open = Some(Open { first_t: t, bytes });
+                self.open = Some(Open {
+                    first_t: t,
+                    last_t: t,
+                    events: 0,
+                    bytes,
+                });
             }
             let end = self.due().unwrap_or(i64::MAX);
             let room = (MAX_PACKET_BYTES / 2).max(1);
@@ -115,6 +138,8 @@ impl Packetizer {
             if let Some(open) = self.open.as_mut() {
                 self.words
                     .encode(&events[i..i + n], offset, w, h, &mut open.bytes)?;
+                open.events += n;
+                open.last_t = events[i + n - 1].t;
                 if open.bytes.len() >= MAX_PACKET_BYTES {
                     self.close(out);
                 }
@@ -125,13 +150,13 @@ impl Packetizer {
     }
 
     /// Closes the open packet, if any, appending it to `out`.
-    pub fn close(&mut self, out: &mut Vec<EventPacket>) {
+    pub fn close(&mut self, out: &mut Vec<Packet>) {
         let Some(open) = self.open.take() else {
             return;
         };
         let offset = self.offset.unwrap_or(0);
         let sensor_us = open.first_t.saturating_sub(offset).max(0) as u64;
-        out.push(EventPacket {
+        let msg = EventPacket {
             header: Header {
                 // Checked when the packet was opened.
                 stamp: Time::from_us(open.first_t).unwrap_or_default(),
@@ -144,6 +169,11 @@ impl Packetizer {
             encoding: "evt3".into(),
             is_bigendian: false,
             events: open.bytes,
+        };
+        out.push(Packet {
+            msg,
+            last_t: open.last_t,
+            events: open.events,
         });
         self.seq += 1;
     }
@@ -182,7 +212,10 @@ pub fn unpack(p: &EventPacket, out: &mut Vec<Event>) -> Result<Unpacked> {
         ));
     }
     let Some(stamp) = p.header.stamp.to_us() else {
-        return bad(format!("stamp nanoseconds {} (1e9 or more)", p.header.stamp.nanosec));
+        return bad(format!(
+            "stamp nanoseconds {} (1e9 or more)",
+            p.header.stamp.nanosec
+        ));
     };
     let swapped;
     let words: &[u8] = if p.is_bigendian {
@@ -257,6 +290,13 @@ mod tests {
     }
 
     fn pack(events: &[Event], packet_us: i64) -> Vec<EventPacket> {
+        pack_all(events, packet_us)
+            .into_iter()
+            .map(|p| p.msg)
+            .collect()
+    }
+
+    fn pack_all(events: &[Event], packet_us: i64) -> Vec<Packet> {
         let mut p = Packetizer::new(640, 480, "cam", packet_us).unwrap();
         let mut out = Vec::new();
         for chunk in events.chunks(333) {

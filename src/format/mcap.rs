@@ -15,7 +15,7 @@ use std::collections::BTreeMap;
 use std::io::{BufReader, Read, Seek, SeekFrom, Write};
 use std::path::Path;
 
-use super::event_packet::{unpack, Packetizer};
+use super::event_packet::{unpack, Packet, Packetizer};
 use super::{EventDecoder, EventEncoder};
 use crate::error::{Error, Result};
 use crate::event::Event;
@@ -46,7 +46,7 @@ pub struct Encoder<W: Write + Seek> {
     writer: Option<mcap::Writer<W>>,
     channel: u16,
     packets: Packetizer,
-    ready: Vec<EventPacket>,
+    ready: Vec<Packet>,
 }
 
 impl<W: Write + Seek> Encoder<W> {
@@ -87,6 +87,7 @@ impl<W: Write + Seek> Encoder<W> {
             return Err(Error::invalid("MCAP output", "already finished"));
         };
         for p in self.ready.drain(..) {
+            let p = p.msg;
             let t = log_time(&p);
             let header = mcap::records::MessageHeader {
                 channel_id: self.channel,

@@ -15,7 +15,9 @@ use rustdds::no_key::{
     DataReader, DataWriter, Decode, DefaultDecoder, DeserializerAdapter, SerializerAdapter,
 };
 use rustdds::policy::{Durability, History, Reliability};
-use rustdds::{DomainParticipant, QosPolicies, QosPolicyBuilder, RepresentationIdentifier, TopicKind};
+use rustdds::{
+    DomainParticipant, QosPolicies, QosPolicyBuilder, RepresentationIdentifier, TopicKind,
+};
 
 use crate::error::{Error, Result};
 
@@ -94,8 +96,16 @@ impl SerializerAdapter<Vec<u8>> for Raw {
         RepresentationIdentifier::CDR_LE
     }
 
+    /// The message after its header, padded with zeros to a multiple of 4 bytes: a sample
+    /// over 1 KiB leaves in fragments of 1 KiB, and Cyclone DDS refuses a last fragment whose
+    /// length is not a multiple of 4 as malformed (measured: a reliable stream then stalls on
+    /// the sample it can never complete). Readers ignore bytes after the last field.
     fn to_bytes(value: &Vec<u8>) -> std::result::Result<Bytes, Never> {
-        Ok(Bytes::copy_from_slice(value.get(4..).unwrap_or_default()))
+        let body = value.get(4..).unwrap_or_default();
+        let mut v = Vec::with_capacity(body.len() + 3);
+        v.extend_from_slice(body);
+        v.resize(body.len().next_multiple_of(4), 0);
+        Ok(Bytes::from(v))
     }
 }
 
@@ -124,7 +134,10 @@ impl DeserializerAdapter<Vec<u8>> for Raw {
     type Decoded = Vec<u8>;
 
     fn supported_encodings() -> &'static [RepresentationIdentifier] {
-        &[RepresentationIdentifier::CDR_LE, RepresentationIdentifier::CDR_BE]
+        &[
+            RepresentationIdentifier::CDR_LE,
+            RepresentationIdentifier::CDR_BE,
+        ]
     }
 
     fn transform_decoded(decoded: Vec<u8>) -> Vec<u8> {
@@ -179,7 +192,10 @@ impl Participant {
         let writer = publisher
             .create_datawriter_no_key::<Vec<u8>, Raw>(&t, None)
             .map_err(|e| dds_error(&format!("writer on {topic}"), e))?;
-        Ok(Publication { writer })
+        Ok(Publication {
+            writer,
+            matched: std::cell::Cell::new(0),
+        })
     }
 
     /// A subscription to `ros_type` messages on the ROS 2 `topic`.
@@ -200,6 +216,8 @@ impl Participant {
 /// A DDS writer of one topic.
 pub struct Publication {
     writer: DataWriter<Vec<u8>, Raw>,
+    /// Subscribers matched, as the writer's status events last said.
+    matched: std::cell::Cell<usize>,
 }
 
 impl Publication {
@@ -213,7 +231,13 @@ impl Publication {
 
     /// The subscribers matched so far.
     pub fn subscribers(&self) -> usize {
-        self.writer.get_matched_subscriptions().len()
+        use rustdds::StatusEvented;
+        while let Some(status) = self.writer.try_recv_status() {
+            if let rustdds::DataWriterStatus::PublicationMatched { current, .. } = status {
+                self.matched.set(current.count().max(0) as usize);
+            }
+        }
+        self.matched.get()
     }
 
     /// Waits until every reliable subscriber has acknowledged what was sent, at most `wait`;

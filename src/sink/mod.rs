@@ -1,6 +1,6 @@
 //! Where events go: one [`Sink`] trait, implemented by a file ([`file`](mod@file)), UDP datagrams
 //! ([`udp`]) and byte streams over TCP ([`tcp`]: DV's AEDAT 4.0 network stream or Prophesee
-//! RAW). `convert` and the daemon hand each sink time-ordered batches of events.
+//! RAW), and ROS 2 topics ([`ros2`]: `event_camera_msgs/msg/EventPacket` over DDS). `convert` and the daemon hand each sink time-ordered batches of events.
 //!
 //! Each kind of sink has a typed configuration (one `[[sink]]` table of the TOML file, see
 //! [`SinkConfig`]) that builds it, so the daemon opens its outputs as a map over a list of
@@ -13,6 +13,7 @@ mod datagrams;
 pub mod emit;
 pub mod file;
 pub mod preview;
+pub mod ros2;
 pub mod tcp;
 pub mod udp;
 
@@ -32,6 +33,8 @@ pub enum SinkConfig {
     Tcp(tcp::TcpSinkConfig),
     /// An event file.
     File(file::FileSinkConfig),
+    /// ROS 2 EventPacket messages on a DDS topic.
+    Ros2(ros2::Ros2SinkConfig),
 }
 
 /// What every sink is built for.
@@ -53,6 +56,7 @@ impl SinkConfig {
             SinkConfig::Udp(c) => c.validate(),
             SinkConfig::Tcp(c) => c.validate(),
             SinkConfig::File(c) => c.validate(),
+            SinkConfig::Ros2(c) => c.validate(),
         }
     }
 
@@ -63,6 +67,7 @@ impl SinkConfig {
             SinkConfig::Udp(c) => c.build(context),
             SinkConfig::Tcp(c) => c.build(context),
             SinkConfig::File(c) => c.build(context),
+            SinkConfig::Ros2(c) => c.build(context),
         }
     }
 
