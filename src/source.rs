@@ -1,6 +1,6 @@
 //! Where the daemon's frames come from, as `[run]` configures it (the source component, as
 //! [`crate::sink`] holds the outputs): a camera, a file replayed at its own pace
-//! (or faster, or looped), or the bundled fixture video; reopened after a failure with a
+//! (or faster, or looped), a ROS 2 image topic (`ros2:TOPIC`), or the bundled fixture video; reopened after a failure with a
 //! growing wait.
 
 use std::path::PathBuf;
@@ -97,10 +97,23 @@ impl SourceConfig {
                         "camera".into(),
                     )
                 }
+                SourceChoice::Ros2(topic) => {
+                    let domain = crate::ros2::dds::default_domain()?;
+                    (
+                        Box::new(move || {
+                            sized(Box::new(frame::ros2_topic::TopicSource::open(
+                                &topic, domain,
+                            )?))
+                        }),
+                        true,
+                        "subscribed to".into(),
+                    )
+                }
                 SourceChoice::File(path) => {
                     let options = SourceOptions {
                         fps: (self.fps > 0.0).then_some(self.fps),
                         color: crate::frame::images::ColorSpace::Auto,
+                        topic: None,
                     };
                     (
                         Box::new(move || sized(frame::open(&path, &options)?)),
@@ -151,6 +164,8 @@ pub enum SourceChoice {
     Camera(String),
     /// A file or image folder, replayed at its own pace.
     File(PathBuf),
+    /// A ROS 2 `sensor_msgs/msg/Image` topic (`ros2:TOPIC`).
+    Ros2(String),
     /// The bundled fixture video; `defaulted` when chosen because no source was given and no
     /// camera was found.
     Fixture {
@@ -170,6 +185,9 @@ pub fn choose_source(source: &str, cameras: impl FnOnce() -> Vec<String>) -> Sou
     }
     if source == frame::fixture::NAME {
         return SourceChoice::Fixture { defaulted: false };
+    }
+    if let Some(topic) = source.strip_prefix(frame::ros2_topic::PREFIX) {
+        return SourceChoice::Ros2(topic.to_string());
     }
     if capture::is_camera(source) {
         return SourceChoice::Camera(source.to_string());

@@ -102,6 +102,7 @@ pub(super) fn do_item(
         source: crate::frame::SourceOptions {
             fps: item.settings.fps,
             color: Default::default(),
+            topic: None,
         },
         size,
         max_frames: None,

@@ -22,6 +22,10 @@ pub struct ConvertArgs {
     /// TOML configuration file (flags override it).
     #[arg(long)]
     pub(crate) config: Option<PathBuf>,
+    /// The sensor_msgs/msg/Image topic of a rosbag2 .mcap input (default: its first Image
+    /// topic).
+    #[arg(long)]
+    pub(crate) topic: Option<String>,
     /// The Stage 1 tier and its settings.
     #[command(flatten)]
     pub(crate) tier: TierArgs,
@@ -122,6 +126,7 @@ pub fn convert(args: ConvertArgs) -> Result<()> {
             } else {
                 args.color
             },
+            topic: args.topic.clone(),
         },
         size: args.size.as_deref().map(parse_size).transpose()?,
         // 0 means no limit, as in `run` and `[run] max_frames`.

@@ -18,6 +18,8 @@ pub mod ffmpeg;
 pub mod fixture;
 pub mod images;
 pub mod resize;
+pub mod ros2_topic;
+pub mod ros_image;
 pub mod scene_fn;
 pub mod y4m;
 
@@ -110,6 +112,8 @@ pub struct SourceOptions {
     pub fps: Option<f64>,
     /// How image values relate to the light (image folders and frame lists).
     pub color: images::ColorSpace,
+    /// The `sensor_msgs/msg/Image` topic of a rosbag2 `.mcap` (else its first Image topic).
+    pub topic: Option<String>,
 }
 
 /// Opens `path` as a frame source: a folder of images, a frame list (an IJRR `images.txt` or a
@@ -181,6 +185,10 @@ fn open_source(path: &Path, options: &SourceOptions) -> Result<Box<dyn FrameSour
     match ext {
         "y4m" => Ok(Box::new(y4m::Y4mSource::open(path)?)),
         "aedat4" => Ok(Box::new(aps::ApsSource::open(path)?)),
+        "mcap" => Ok(Box::new(ros_image::BagSource::open(
+            path,
+            options.topic.as_deref(),
+        )?)),
         _ if images::frame_list_kind(path).is_some() => Ok(Box::new(
             images::ImageFolder::open_list_file(path, options.color)?,
         )),
@@ -213,7 +221,11 @@ pub fn load_recording(
     max_frames: usize,
 ) -> Result<(crate::format::Recording, Vec<Frame>)> {
     let events = crate::format::read_events(real)?;
-    let options = SourceOptions { fps: None, color };
+    let options = SourceOptions {
+        fps: None,
+        color,
+        topic: None,
+    };
     let mut source = open(frames.unwrap_or(real), &options)?;
     if source.size() != (events.width, events.height) {
         return Err(Error::invalid(

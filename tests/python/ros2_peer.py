@@ -10,6 +10,7 @@ rosbags (PyPI) reading and writing .mcap bags. Used by tests/ros2.rs.
       malformed ones.
   ros2_peer.py bag-read BAG.mcap OUT.raw      EventPacket payloads of a bag, decoded as above.
   ros2_peer.py bag-write FRAMES.npz BAG.mcap TOPIC   Images into a bag with rosbags.
+  ros2_peer.py frames FRAMES.npz FOLDER      The test frames, also as PNGs with times.txt.
 """
 import json
 import sys
@@ -197,6 +198,41 @@ def publish(topic, frames_path, hostile=False):
     print("published", len(frames), flush=True)
 
 
+def gray_png(a):
+    """An 8-bit gray PNG of `a` (no dependency beyond the standard library)."""
+    import struct
+    import zlib
+
+    def chunk(kind, data):
+        c = struct.pack(">I", len(data)) + kind + data
+        return c + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+    h, w = a.shape
+    raw = b"".join(b"\x00" + a[r].tobytes() for r in range(h))
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b""))
+
+
+def make_frames(out_npz, folder):
+    """A bright bar crossing a textured 160x120 scene: 40 mono8 frames 33.333 ms apart from
+    t = 1 s, as an .npz (frames, t_us) and as a PNG folder with times.txt."""
+    h, w, n = 120, 160, 40
+    yy, xx = np.mgrid[0:h, 0:w]
+    frames, times = [], []
+    for i in range(n):
+        f = 40 + 30 * np.sin(xx / 7.0) * np.cos(yy / 9.0)
+        x0 = 10 + 3 * i
+        f[:, x0:x0 + 12] = 220
+        frames.append(np.clip(f, 0, 255).astype(np.uint8))
+        times.append(1_000_000 + (i * 100_000) // 3)
+    frames = np.stack(frames)
+    np.savez(out_npz, frames=frames, t_us=np.array(times, dtype=np.int64))
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    for i, f in enumerate(frames):
+        (folder / ("%04d.png" % i)).write_bytes(gray_png(f))
+    (folder / "times.txt").write_text("".join("%.6f\n" % (t / 1e6) for t in times))
+
+
 def bag_read(bag, out):
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
@@ -254,6 +290,8 @@ if __name__ == "__main__":
         publish(sys.argv[2], sys.argv[3], "--hostile" in sys.argv)
     elif cmd == "bag-read":
         bag_read(sys.argv[2], sys.argv[3])
+    elif cmd == "frames":
+        make_frames(sys.argv[2], sys.argv[3])
     elif cmd == "bag-write":
         bag_write(sys.argv[2], sys.argv[3], sys.argv[4])
     else:
