@@ -43,6 +43,14 @@ pub enum Listen {
         /// The address to connect to.
         connect: String,
     },
+    /// Subscribe to a ROS 2 topic of `event_camera_msgs/msg/EventPacket` (`evt3`) on a DDS
+    /// domain; each packet is decoded alone.
+    Ros2 {
+        /// The ROS 2 topic.
+        topic: String,
+        /// The DDS domain.
+        domain: u16,
+    },
 }
 
 /// How long to listen and what to keep.
@@ -92,6 +100,12 @@ pub struct ListenReport {
     /// nor written: one holding a pixel off the sensor (`--size`, or the stream's header),
     /// which the file cannot hold.
     pub off_sensor: u64,
+    /// ROS 2 packets refused whole: a message that does not decode (malformed CDR, an
+    /// encoding other than `evt3`, words cut short).
+    pub malformed: u64,
+    /// ROS 2 packets missing from the `seq` numbering (sent but not received, or before this
+    /// receiver joined: not counted).
+    pub seq_gaps: u64,
     /// Seconds from the first arrival to the last.
     pub seconds: f64,
     /// Events per second over that span.
@@ -459,6 +473,48 @@ pub fn listen(
                     }
                     Some(_) => {}
                 }
+            }
+            tally.finish()
+        }
+        Listen::Ros2 { topic, domain } => {
+            let participant = crate::ros2::dds::Participant::new(*domain)?;
+            let mut sub = participant.subscribe(
+                topic,
+                crate::ros2::msg::EVENT_PACKET,
+                crate::ros2::dds::Qos {
+                    reliable: true,
+                    depth: 10_000,
+                },
+            )?;
+            ready(&format!("{topic} (domain {domain})"));
+            let mut tally = Tally::new(out(options.size)?, options.size);
+            let mut events = Vec::new();
+            let mut next_seq: Option<u64> = None;
+            while !done(&tally) {
+                let Some(bytes) = sub.next(Duration::from_millis(50))? else {
+                    continue;
+                };
+                let at = Instant::now();
+                tally.arrive(at, bytes.len());
+                let packet = match crate::ros2::msg::EventPacket::from_cdr(&bytes) {
+                    Ok(p) => p,
+                    Err(e) => {
+                        tally.report.malformed += 1;
+                        tracing::warn!("{topic}: a malformed packet refused: {e}");
+                        continue;
+                    }
+                };
+                if let Some(want) = next_seq {
+                    tally.report.seq_gaps += packet.seq.saturating_sub(want);
+                }
+                next_seq = Some(packet.seq.saturating_add(1));
+                events.clear();
+                if let Err(e) = format::event_packet::unpack(&packet, &mut events) {
+                    tally.report.malformed += 1;
+                    tracing::warn!("{topic}: packet {} refused: {e}", packet.seq);
+                    continue;
+                }
+                tally.events(at, &mut events, true)?;
             }
             tally.finish()
         }

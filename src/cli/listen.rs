@@ -20,6 +20,10 @@ pub struct ListenArgs {
     /// Connect to a daemon's TCP stream at HOST:PORT (AEDAT 4.0 or RAW EVT 2.0/3.0).
     #[arg(long)]
     pub(crate) tcp: Option<String>,
+    /// Subscribe to a ROS 2 topic of event_camera_msgs/msg/EventPacket (evt3) over DDS, on
+    /// ROS_DOMAIN_ID (else 0).
+    #[arg(long, value_name = "TOPIC", conflicts_with_all = ["udp", "tcp"])]
+    pub(crate) ros2: Option<String>,
     /// Write the events to this file (.aedat4, .raw, .csv, .npz, .h5); plain spif events get their
     /// arrival time.
     #[arg(short, long)]
@@ -62,6 +66,10 @@ pub fn listen(args: ListenArgs) -> Result<()> {
     use crate::listen::{Listen, ListenOptions};
     let seconds = |what: &'static str, v: f64| crate::limits::seconds(what, v, true);
     let listen = match (&args.udp, &args.tcp) {
+        _ if args.ros2.is_some() => Listen::Ros2 {
+            topic: args.ros2.clone().unwrap_or_default(),
+            domain: crate::ros2::dds::default_domain()?,
+        },
         (_, Some(connect)) => Listen::Tcp {
             connect: connect.clone(),
         },
@@ -120,8 +128,14 @@ pub fn listen(args: ListenArgs) -> Result<()> {
                 ))
                 .unwrap_or_default()
         );
+        if args.ros2.is_some() {
+            println!(
+                "ros2: {} packets malformed (refused), {} missing from the seq numbering",
+                report.malformed, report.seq_gaps
+            );
+        }
     }
-    let udp = args.udp.is_some() || args.tcp.is_none();
+    let udp = args.ros2.is_none() && (args.udp.is_some() || args.tcp.is_none());
     if udp && !report.realtime && args.priority > 0 {
         eprintln!(
             "v2ce listen: the receiver ran at normal priority (realtime {} refused: needs root or \

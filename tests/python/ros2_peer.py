@@ -13,6 +13,7 @@ rosbags (PyPI) reading and writing .mcap bags. Used by tests/ros2.rs.
   ros2_peer.py frames FRAMES.npz FOLDER      The test frames, also as PNGs with times.txt.
 """
 import json
+import os
 import sys
 import time
 from dataclasses import dataclass
@@ -108,7 +109,7 @@ def subscribe(topic, out, seconds, start_after=0):
     from cyclonedds.core import Qos, Policy
     from cyclonedds.util import duration
     _, _, EventPacket, _ = dds_types()
-    dp = DomainParticipant(0)
+    dp = DomainParticipant(int(os.environ.get("ROS_DOMAIN_ID", "0")))
     t = Topic(dp, "rt/" + topic.lstrip("/"), EventPacket)
     qos = Qos(Policy.Reliability.Reliable(duration(seconds=1)), Policy.History.KeepLast(10000))
     reader = DataReader(dp, t, qos=qos)
@@ -157,7 +158,7 @@ def publish(topic, frames_path, hostile=False):
     Time, Header, _, Image = dds_types()
     data = np.load(frames_path)
     frames, times = data["frames"], data["t_us"]
-    dp = DomainParticipant(0)
+    dp = DomainParticipant(int(os.environ.get("ROS_DOMAIN_ID", "0")))
     t = Topic(dp, "rt/" + topic.lstrip("/"), Image)
     qos = Qos(Policy.Reliability.Reliable(duration(seconds=5)), Policy.History.KeepLast(1000))
     writer = DataWriter(dp, t, qos=qos)
