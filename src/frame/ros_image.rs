@@ -30,10 +30,22 @@ fn pixel(encoding: &str) -> Option<Pixel> {
     Some(match encoding.to_ascii_lowercase().as_str() {
         "mono8" | "8uc1" => Pixel::Mono8,
         "mono16" | "16uc1" => Pixel::Mono16,
-        "rgb8" => Pixel::Rgb { bytes: 3, bgr: false },
-        "bgr8" => Pixel::Rgb { bytes: 3, bgr: true },
-        "rgba8" => Pixel::Rgb { bytes: 4, bgr: false },
-        "bgra8" => Pixel::Rgb { bytes: 4, bgr: true },
+        "rgb8" => Pixel::Rgb {
+            bytes: 3,
+            bgr: false,
+        },
+        "bgr8" => Pixel::Rgb {
+            bytes: 3,
+            bgr: true,
+        },
+        "rgba8" => Pixel::Rgb {
+            bytes: 4,
+            bgr: false,
+        },
+        "bgra8" => Pixel::Rgb {
+            bytes: 4,
+            bgr: true,
+        },
         "yuv422" | "uyvy" => Pixel::Yuv { y_first: false },
         "yuyv" | "yuv422_yuy2" => Pixel::Yuv { y_first: true },
         _ => return None,

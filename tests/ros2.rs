@@ -1,0 +1,320 @@
+//! ROS 2 without ROS, against real independent implementations on loopback: Cyclone DDS (PyPI
+//! `cyclonedds`, the DDS of `rmw_cyclonedds`) subscribing to the `ros2` sink and publishing
+//! images into `--source ros2:...`, rosbags (PyPI) reading our `.mcap` and writing the image
+//! bags we read, faery decoding the EVT 3.0 payloads (tests/python/ros2_peer.py).
+//!
+//! Each test uses its own DDS domain (from the process id), so parallel runs do not meet.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+
+fn v2ce() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_v2ce"))
+}
+
+fn peer() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/ros2_peer.py")
+}
+
+/// A domain of its own for each test of this process (ROS 2 allows 0 to 232).
+fn domain(test: u32) -> String {
+    (((std::process::id() % 50) * 4 + test) % 230 + 1).to_string()
+}
+
+/// The interpreter when it has cyclonedds, rosbags and faery; else a printed reason (a failure
+/// under `V2CE_REQUIRE_PYTHON`).
+fn peer_python(test: &str) -> Option<PathBuf> {
+    let py = common::python()?;
+    let ok = Command::new(&py)
+        .args(["-c", "import cyclonedds, rosbags, faery, numpy"])
+        .status()
+        .is_ok_and(|s| s.success());
+    if !ok {
+        if std::env::var_os("V2CE_REQUIRE_PYTHON").is_some() {
+            panic!("V2CE_REQUIRE_PYTHON is set but the venv lacks cyclonedds/rosbags/faery");
+        }
+        skipped!("SKIPPED {test}: the venv lacks cyclonedds, rosbags or faery (tests/python/requirements.txt)");
+        return None;
+    }
+    Some(py)
+}
+
+fn json(path: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+/// Events of a file, read by faery: (t, x, y, on) columns as one list.
+fn faery_events(py: &Path, path: &Path) -> String {
+    let out = Command::new(py)
+        .args([
+            "-c",
+            "import sys, faery, numpy as np, hashlib\n\
+             p = list(faery.events_stream_from_file(sys.argv[1]))\n\
+             a = np.concatenate(p) if p else np.zeros(0)\n\
+             print(len(a), hashlib.sha256(b''.join(np.ascontiguousarray(a[k]).tobytes() for k in ['t','x','y','on'])).hexdigest() if len(a) else 0)",
+        ])
+        .arg(path)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).trim().to_string()
+}
+
+#[test]
+fn cyclone_subscribes_and_every_event_equals_convert() {
+    let Some(py) = peer_python("cyclone_subscribes_and_every_event_equals_convert") else {
+        return;
+    };
+    let dir = common::temp_dir("ros2-sub");
+    let d: &Path = &dir;
+    let dom = domain(0);
+    let sub = Command::new(&py)
+        .arg(peer())
+        .args(["subscribe", "/v2ce_test/events"])
+        .arg(d.join("sub.raw"))
+        .arg("90")
+        .env("ROS_DOMAIN_ID", &dom)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let run = v2ce()
+        .args([
+            "run",
+            "--source",
+            "fixture",
+            "--max-frames",
+            "45",
+            "--udp",
+            "",
+        ])
+        .args([
+            "--ros2",
+            "/v2ce_test/events",
+            "--ros2-wait-subscribers",
+            "1",
+        ])
+        .args(["--queue-policy", "block", "--seed", "5"])
+        .env("ROS_DOMAIN_ID", &dom)
+        .output()
+        .unwrap();
+    let log = String::from_utf8_lossy(&run.stderr);
+    assert!(run.status.success(), "{log}");
+    let sub = sub.wait_with_output().unwrap();
+    assert!(sub.status.success());
+    let conv = v2ce()
+        .args([
+            "convert",
+            "fixture",
+            "--max-frames",
+            "45",
+            "--seed",
+            "5",
+            "--evt",
+            "3",
+            "-o",
+        ])
+        .arg(d.join("conv.raw"))
+        .output()
+        .unwrap();
+    assert!(conv.status.success());
+    let summary = json(&d.join("sub.raw.json"));
+    let seqs: Vec<u64> = serde_json::from_value(summary["seqs"].clone()).unwrap();
+    assert!(!seqs.is_empty(), "no packet arrived: {log}");
+    // Every packet, from seq 0, in order.
+    assert!(seqs.iter().enumerate().all(|(i, s)| *s == i as u64));
+    assert_eq!(summary["frame_ids"], serde_json::json!(["event_camera"]));
+    assert_eq!(summary["encodings"], serde_json::json!(["evt3"]));
+    assert_eq!(summary["sizes"], serde_json::json!([[640, 480]]));
+    // Each packet decodes alone (a subscriber that joins at any packet reads it).
+    let alone: Vec<u64> = serde_json::from_value(summary["alone"].clone()).unwrap();
+    assert!(
+        !alone.is_empty() && alone.iter().all(|n| *n > 0),
+        "{alone:?}"
+    );
+    // The payloads end to end, read by faery, equal convert's file event for event.
+    let (a, b) = (
+        faery_events(&py, &d.join("sub.raw")),
+        faery_events(&py, &d.join("conv.raw")),
+    );
+    assert!(!a.starts_with("0 "), "{a}");
+    assert_eq!(a, b);
+}
+
+fn frames(py: &Path, d: &Path) {
+    let o = Command::new(py)
+        .arg(peer())
+        .arg("frames")
+        .arg(d.join("fr.npz"))
+        .arg(d.join("fr"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
+#[test]
+fn cyclone_images_feed_the_source_and_hostile_ones_are_counted() {
+    let Some(py) = peer_python("cyclone_images_feed_the_source_and_hostile_ones_are_counted")
+    else {
+        return;
+    };
+    let dir = common::temp_dir("ros2-src");
+    let d: &Path = &dir;
+    frames(&py, d);
+    let dom = domain(1);
+    let run = v2ce()
+        .args([
+            "run",
+            "--source",
+            "ros2:/v2ce_test/image_raw",
+            "--max-frames",
+            "40",
+        ])
+        .args([
+            "--udp",
+            "",
+            "--queue-policy",
+            "block",
+            "--seed",
+            "3",
+            "--out",
+        ])
+        .arg(d.join("live.csv"))
+        .env("ROS_DOMAIN_ID", &dom)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let publish = Command::new(&py)
+        .arg(peer())
+        .args(["publish", "/v2ce_test/image_raw"])
+        .arg(d.join("fr.npz"))
+        .arg("--hostile")
+        .env("ROS_DOMAIN_ID", &dom)
+        .output()
+        .unwrap();
+    assert!(
+        publish.status.success(),
+        "{}",
+        String::from_utf8_lossy(&publish.stderr)
+    );
+    let run = run.wait_with_output().unwrap();
+    let log = String::from_utf8_lossy(&run.stderr);
+    assert!(run.status.success(), "{log}");
+    // Six hostile images (short step, short data, unknown encoding, size against data, a
+    // stamp back in time, an absurd size), each refused and counted; the run went on.
+    assert!(log.contains("image refused (6 so far)"), "{log}");
+    assert!(!log.contains("image refused (7 so far)"), "{log}");
+    assert!(log.contains("40 frames in"), "{log}");
+    let conv = v2ce()
+        .args(["convert", "--seed", "3"])
+        .arg(d.join("fr"))
+        .arg("-o")
+        .arg(d.join("conv.csv"))
+        .output()
+        .unwrap();
+    assert!(conv.status.success());
+    let live = std::fs::read(d.join("live.csv")).unwrap();
+    assert!(live.len() > 1000);
+    assert!(
+        live == std::fs::read(d.join("conv.csv")).unwrap(),
+        "the live events differ from convert's"
+    );
+}
+
+#[test]
+fn rosbags_reads_our_bags_and_we_read_its_image_bags() {
+    let Some(py) = peer_python("rosbags_reads_our_bags_and_we_read_its_image_bags") else {
+        return;
+    };
+    let dir = common::temp_dir("ros2-bag");
+    let d: &Path = &dir;
+    frames(&py, d);
+    // Our events bag, read by rosbags, payloads decoded by faery: convert's events.
+    for (args, name) in [(
+        vec!["convert", "fixture", "--max-frames", "20", "--seed", "9"],
+        "ev",
+    )] {
+        for ext in ["mcap", "raw"] {
+            let mut c = v2ce();
+            c.args(&args)
+                .args(["--evt", "3", "-o"])
+                .arg(d.join(format!("{name}.{ext}")));
+            assert!(c.output().unwrap().status.success());
+        }
+    }
+    let o = Command::new(&py)
+        .arg(peer())
+        .arg("bag-read")
+        .arg(d.join("ev.mcap"))
+        .arg(d.join("bag.raw"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let s = json(&d.join("bag.raw.json"));
+    assert!(s["packets"].as_u64().unwrap() > 100);
+    assert_eq!(
+        faery_events(&py, &d.join("bag.raw")),
+        faery_events(&py, &d.join("ev.raw"))
+    );
+    // v2ce reads its own bag back (info, transcode) with the same events.
+    let t = v2ce()
+        .arg("transcode")
+        .arg(d.join("ev.mcap"))
+        .arg(d.join("back.raw"))
+        .args(["--evt", "3"])
+        .output()
+        .unwrap();
+    assert!(t.status.success(), "{}", String::from_utf8_lossy(&t.stderr));
+    assert_eq!(
+        faery_events(&py, &d.join("back.raw")),
+        faery_events(&py, &d.join("ev.raw"))
+    );
+    // A bag of Images that rosbags wrote (two cameras): --topic picks one; its events equal
+    // the same frames from PNGs with their times.
+    let o = Command::new(&py)
+        .arg(peer())
+        .arg("bag-write")
+        .arg(d.join("fr.npz"))
+        .arg(d.join("images"))
+        .arg("/cam/image_raw")
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let bag = d.join("images/images.mcap");
+    let c = v2ce()
+        .arg("convert")
+        .arg(&bag)
+        .args(["--topic", "/cam/image_raw", "--seed", "2", "-o"])
+        .arg(d.join("bag.csv"))
+        .output()
+        .unwrap();
+    assert!(c.status.success(), "{}", String::from_utf8_lossy(&c.stderr));
+    let c = v2ce()
+        .arg("convert")
+        .arg(d.join("fr"))
+        .args(["--seed", "2", "-o"])
+        .arg(d.join("png.csv"))
+        .output()
+        .unwrap();
+    assert!(c.status.success());
+    let a = std::fs::read(d.join("bag.csv")).unwrap();
+    assert!(a.len() > 1000);
+    assert!(a == std::fs::read(d.join("png.csv")).unwrap());
+    // A topic the bag does not have: an error naming the topics it has.
+    let c = v2ce()
+        .arg("convert")
+        .arg(&bag)
+        .args(["--topic", "/nope", "-o"])
+        .arg(d.join("x.csv"))
+        .output()
+        .unwrap();
+    assert!(!c.status.success());
+    assert!(String::from_utf8_lossy(&c.stderr).contains("/cam/image_raw"));
+}
