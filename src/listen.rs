@@ -476,49 +476,66 @@ pub fn listen(
             }
             tally.finish()
         }
-        Listen::Ros2 { topic, domain } => {
-            let participant = crate::ros2::dds::Participant::new(*domain)?;
-            let mut sub = participant.subscribe(
-                topic,
-                crate::ros2::msg::EVENT_PACKET,
-                crate::ros2::dds::Qos {
-                    reliable: true,
-                    depth: 10_000,
-                },
-            )?;
-            ready(&format!("{topic} (domain {domain})"));
-            let mut tally = Tally::new(out(options.size)?, options.size);
-            let mut events = Vec::new();
-            let mut next_seq: Option<u64> = None;
-            while !done(&tally) {
-                let Some(bytes) = sub.next(Duration::from_millis(50))? else {
-                    continue;
-                };
-                let at = Instant::now();
-                tally.arrive(at, bytes.len());
-                let packet = match crate::ros2::msg::EventPacket::from_cdr(&bytes) {
-                    Ok(p) => p,
-                    Err(e) => {
-                        tally.report.malformed += 1;
-                        tracing::warn!("{topic}: a malformed packet refused: {e}");
-                        continue;
-                    }
-                };
-                if let Some(want) = next_seq {
-                    tally.report.seq_gaps += packet.seq.saturating_sub(want);
-                }
-                next_seq = Some(packet.seq.saturating_add(1));
-                events.clear();
-                if let Err(e) = format::event_packet::unpack(&packet, &mut events) {
-                    tally.report.malformed += 1;
-                    tracing::warn!("{topic}: packet {} refused: {e}", packet.seq);
-                    continue;
-                }
-                tally.events(at, &mut events, true)?;
-            }
-            tally.finish()
-        }
+        Listen::Ros2 { topic, domain } => listen_ros2(
+            topic,
+            *domain,
+            out(options.size)?,
+            options.size,
+            &done,
+            ready,
+        ),
     }
+}
+
+/// `listen --ros2`: EventPacket messages, each decoded alone.
+fn listen_ros2(
+    topic: &str,
+    domain: u16,
+    out: Option<Box<dyn EventEncoder + Send>>,
+    size: (u16, u16),
+    done: &dyn Fn(&Tally) -> bool,
+    ready: impl FnOnce(&str),
+) -> Result<ListenReport> {
+    let participant = crate::ros2::dds::Participant::new(domain)?;
+    let mut sub = participant.subscribe(
+        topic,
+        crate::ros2::msg::EVENT_PACKET,
+        crate::ros2::dds::Qos {
+            reliable: true,
+            depth: 10_000,
+        },
+    )?;
+    ready(&format!("{topic} (domain {domain})"));
+    let mut tally = Tally::new(out, size);
+    let mut events = Vec::new();
+    let mut next_seq: Option<u64> = None;
+    while !done(&tally) {
+        let Some(bytes) = sub.next(Duration::from_millis(50))? else {
+            continue;
+        };
+        let at = Instant::now();
+        tally.arrive(at, bytes.len());
+        let packet = match crate::ros2::msg::EventPacket::from_cdr(&bytes) {
+            Ok(p) => p,
+            Err(e) => {
+                tally.report.malformed += 1;
+                tracing::warn!("{topic}: a malformed packet refused: {e}");
+                continue;
+            }
+        };
+        if let Some(want) = next_seq {
+            tally.report.seq_gaps += packet.seq.saturating_sub(want);
+        }
+        next_seq = Some(packet.seq.saturating_add(1));
+        events.clear();
+        if let Err(e) = format::event_packet::unpack(&packet, &mut events) {
+            tally.report.malformed += 1;
+            tracing::warn!("{topic}: packet {} refused: {e}", packet.seq);
+            continue;
+        }
+        tally.events(at, &mut events, true)?;
+    }
+    tally.finish()
 }
 
 /// A TCP stream whose reads wait out timeouts until `give_up` says so (the stream's own read

@@ -155,6 +155,7 @@ fn aps_frames_match_the_png_export() {
     let options = frame::SourceOptions {
         fps: None,
         color: frame::images::ColorSpace::Linear,
+        topic: None,
     };
     let mut png = frame::open(&d.join("davis346/ijrr_export"), &options).unwrap();
     assert_eq!(aps.size(), (346, 260));

@@ -312,7 +312,11 @@ fn convert_path<'py>(
                 )))
             }
         };
-        let options = v2ce::frame::SourceOptions { fps, color };
+        let options = v2ce::frame::SourceOptions {
+            fps,
+            color,
+            topic: None,
+        };
         let frames = py
             .detach(|| {
                 if source.as_os_str() == v2ce::frame::fixture::NAME {

@@ -205,7 +205,7 @@ pub fn unpack(p: &EventPacket, out: &mut Vec<Event>) -> Result<Unpacked> {
             p.width, p.height
         ));
     }
-    if p.events.len() % 2 != 0 {
+    if !p.events.len().is_multiple_of(2) {
         return bad(format!(
             "{} bytes of events is not a whole number of 16-bit words",
             p.events.len()

@@ -369,6 +369,7 @@ mod tests {
             let options = crate::frame::SourceOptions {
                 fps: None,
                 color: ColorSpace::Auto,
+                topic: None,
             };
             match crate::frame::open(&list, &options) {
                 Ok(_) => panic!("{text:?} opened"),
@@ -427,6 +428,7 @@ mod tests {
         let options = crate::frame::SourceOptions {
             fps: None,
             color: ColorSpace::Auto,
+            topic: None,
         };
         let mut source = crate::frame::open(&dir.join("images.txt"), &options).unwrap();
         let times: Vec<i64> = crate::frame::read_frames(source.as_mut(), 3)

@@ -157,10 +157,7 @@ impl<'a> Image<'a> {
         let height = r.u32("height")?;
         let width = r.u32("width")?;
         let encoding = r.string("encoding", MAX_STRING)?;
-        let is_bigendian = match r.bool("is_bigendian") {
-            Ok(b) => b,
-            Err(_) => true,
-        };
+        let is_bigendian = r.bool("is_bigendian").unwrap_or(true);
         Ok(Image {
             header,
             height,
