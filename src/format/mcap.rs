@@ -9,7 +9,8 @@
 //!
 //! The reader takes the EventPacket messages of one topic (the first such topic in the file,
 //! or the one asked for) in file order; frames in `sensor_msgs/msg/Image` messages are
-//! [`crate::frame::bag`]'s. Chunks compressed with zstd or lz4 are not read (an error says so).
+//! [`crate::frame::ros_image`]'s. Chunks compressed with zstd are read; lz4 chunks are not (an
+//! error says so).
 
 use std::collections::BTreeMap;
 use std::io::{BufReader, Read, Seek, SeekFrom, Write};
@@ -156,17 +157,78 @@ impl Decoder<BufReader<std::fs::File>> {
     }
 }
 
-/// The options every bag is read with: a record may claim no more than a chunk may.
-pub fn read_options() -> mcap::sans_io::LinearReaderOptions {
-    mcap::sans_io::LinearReaderOptions::default()
-        .with_record_length_limit(crate::limits::MAX_CHUNK_BYTES as usize)
+/// A reader of a bag's messages in file order: a record may claim no more than a chunk may
+/// ([`crate::limits::MAX_CHUNK_BYTES`]), and zstd chunks (rosbag2's `zstd_fast` and
+/// `zstd_small` presets) are decompressed.
+pub fn message_reader<R: Read>(reader: R) -> Result<mcap::io::MessageReader<R>> {
+    let options = mcap::sans_io::LinearReaderOptions::default()
+        .with_record_length_limit(crate::limits::MAX_CHUNK_BYTES as usize);
+    let mut r = mcap::io::MessageReader::new_with_options(reader, options);
+    r.add_decompressor(ZstdChunks::default())
+        .map_err(|e| mcap_error("zstd", e))?;
+    Ok(r)
+}
+
+/// zstd chunks, decompressed as a stream (the `zstd` crate the project already builds).
+#[derive(Default)]
+struct ZstdChunks {
+    stream: Option<zstd::zstd_safe::DStream<'static>>,
+    /// The decoder's hint of the input it wants next (0: any).
+    hint: usize,
+}
+
+fn zstd_error(code: usize) -> mcap::McapError {
+    mcap::McapError::DecompressionError(zstd::zstd_safe::get_error_name(code).into())
+}
+
+impl mcap::sans_io::decompressor::Decompressor for ZstdChunks {
+    fn next_read_size(&self) -> usize {
+        self.hint
+    }
+
+    fn decompress(
+        &mut self,
+        src: &[u8],
+        dst: &mut [u8],
+    ) -> mcap::McapResult<mcap::sans_io::decompressor::DecompressResult> {
+        let stream = match &mut self.stream {
+            Some(s) => s,
+            None => {
+                let mut s = zstd::zstd_safe::DStream::create();
+                s.init().map_err(zstd_error)?;
+                self.stream.insert(s)
+            }
+        };
+        let mut input = zstd::zstd_safe::InBuffer::around(src);
+        let mut output = zstd::zstd_safe::OutBuffer::around(dst);
+        self.hint = stream
+            .decompress_stream(&mut output, &mut input)
+            .map_err(zstd_error)?;
+        Ok(mcap::sans_io::decompressor::DecompressResult {
+            consumed: input.pos,
+            wrote: output.pos(),
+        })
+    }
+
+    fn reset(&mut self) -> mcap::McapResult<()> {
+        self.hint = 0;
+        if let Some(s) = &mut self.stream {
+            s.reset(zstd::zstd_safe::ResetDirective::SessionOnly)
+                .map_err(zstd_error)?;
+        }
+        Ok(())
+    }
+
+    fn name(&self) -> &'static str {
+        "zstd"
+    }
 }
 
 impl<R: Read> Decoder<R> {
     /// A decoder over a bag's bytes; reads up to the first packet to learn the sensor's size.
     pub fn new(reader: R, topic: Option<&str>) -> Result<Self> {
         let mut d = Decoder {
-            messages: mcap::io::MessageReader::new_with_options(reader, read_options()),
+            messages: message_reader(reader)?,
             topic: topic.map(str::to_string),
             size: None,
             pending: Vec::new(),
@@ -343,6 +405,28 @@ pub fn close_in_place(path: &Path) -> Result<u64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `tests/fixtures/zstd_chunks.mcap`: written by the `mcap` crate with zstd chunks of 16 KiB
+    /// (its default features), EventPacket messages on `/dvs/events` and five rgb8 Images.
+    #[test]
+    fn zstd_chunked_bags_are_read() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/zstd_chunks.mcap");
+        let expected: Vec<Event> = (0..8_000i64)
+            .map(|i| Event::new(5_000_000 + i * 7, (i % 97) as u16, (i % 61) as u16, i % 3 == 0))
+            .collect();
+        let mut d = Decoder::open(&path, None).unwrap();
+        assert_eq!(d.size(), Some((128, 64)));
+        let mut back = Vec::new();
+        while d.read_events(&mut back, 1000).unwrap() > 0 {}
+        assert_eq!(back, expected);
+        let mut frames = crate::frame::ros_image::BagSource::open(&path, None).unwrap();
+        let mut n = 0;
+        while let Some(f) = crate::frame::FrameSource::next_frame(&mut frames).unwrap() {
+            assert_eq!((f.width, f.height, f.t), (32, 24, 5_000_000 + n * 40_000));
+            n += 1;
+        }
+        assert_eq!(n, 5);
+    }
 
     #[test]
     fn a_bag_round_trips_and_a_cut_one_is_closed_with_its_whole_messages() {

@@ -145,10 +145,8 @@ impl BagSource {
     /// topic); a bag without Image messages there is an error naming the topics it has.
     pub fn open(path: &Path, topic: Option<&str>) -> Result<Self> {
         let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
-        let messages = mcap::io::MessageReader::new_with_options(
-            std::io::BufReader::with_capacity(1 << 16, file),
-            crate::format::mcap::read_options(),
-        );
+        let messages =
+            crate::format::mcap::message_reader(std::io::BufReader::with_capacity(1 << 16, file))?;
         let mut s = BagSource {
             path: path.display().to_string(),
             messages,
@@ -251,5 +249,81 @@ impl FrameSource for BagSource {
 
     fn encoding(&self) -> SourceEncoding {
         self.encoding
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ros2::msg::{Header, Time};
+    use std::borrow::Cow;
+
+    fn image(encoding: &str, w: u32, h: u32, step: u32, data: Vec<u8>) -> Image<'static> {
+        Image {
+            header: Header {
+                stamp: Time::from_us(2_000_123).unwrap(),
+                frame_id: "cam".into(),
+            },
+            height: h,
+            width: w,
+            encoding: encoding.into(),
+            is_bigendian: false,
+            step,
+            data: Cow::Owned(data),
+        }
+    }
+
+    #[test]
+    fn every_encoding_gives_the_same_luma_for_the_same_gray() {
+        // A gray of 128 in every 8-bit encoding, with a padded step of 2 bytes more per row.
+        let gray = color::gray_to_luma(128);
+        for (enc, bpp, px) in [
+            ("mono8", 1, vec![128u8]),
+            ("rgb8", 3, vec![128, 128, 128]),
+            ("bgr8", 3, vec![128, 128, 128]),
+            ("rgba8", 4, vec![128, 128, 128, 255]),
+            ("bgra8", 4, vec![128, 128, 128, 255]),
+            ("yuv422", 2, vec![128, 128]),
+            ("yuyv", 2, vec![128, 128]),
+        ] {
+            let (w, h) = (4u32, 3u32);
+            let step = w * bpp + 2;
+            let mut data = Vec::new();
+            for _ in 0..h {
+                for _ in 0..w * bpp / px.len() as u32 {
+                    data.extend_from_slice(&px);
+                }
+                data.extend_from_slice(&[9, 9]);
+            }
+            let f = to_frame(&image(enc, w, h, step, data)).unwrap();
+            assert_eq!((f.width, f.height, f.t), (4, 3, 2_000_123), "{enc}");
+            assert!(f.luma.iter().all(|&v| v.abs_diff(gray) <= 1), "{enc}: {:?}", f.luma);
+        }
+        // mono16 is linear, either byte order.
+        let mut img = image("mono16", 2, 1, 4, vec![0x34, 0x12, 0x78, 0x56]);
+        assert_eq!(to_frame(&img).unwrap().luma, vec![0x1234, 0x5678]);
+        img.is_bigendian = true;
+        assert_eq!(to_frame(&img).unwrap().luma, vec![0x3412, 0x7856]);
+        assert_eq!(encoding_of(&img), Some(SourceEncoding::Linear));
+    }
+
+    #[test]
+    fn fields_that_disagree_are_refused() {
+        let ok = image("mono8", 4, 2, 4, vec![0; 8]);
+        assert!(to_frame(&ok).is_ok());
+        for bad in [
+            image("mono8", 4, 2, 3, vec![0; 6]),      // step shorter than a row
+            image("mono8", 4, 2, 4, vec![0; 7]),      // data short
+            image("mono8", 4, 2, 4, vec![0; 9]),      // data long
+            image("bayer_rggb8", 4, 2, 4, vec![0; 8]), // not read
+            image("yuyv", 3, 2, 6, vec![0; 12]),      // odd width for 4:2:2
+            image("mono8", 0, 2, 0, vec![]),          // no pixels
+            image("mono8", 100_000, 1, 100_000, vec![0; 10]), // past the limits
+        ] {
+            assert!(to_frame(&bad).is_err(), "{bad:?}");
+        }
+        let mut late = ok.clone();
+        late.header.stamp.nanosec = 1_000_000_000;
+        assert!(to_frame(&late).is_err());
     }
 }
