@@ -285,6 +285,7 @@ fn a_full_disk_leaves_a_readable_file_holding_what_was_reported() {
         ("aedat4", None, &["faery", "aedat", "dv"]),
         ("npz", None, &["numpy"]),
         ("h5", None, &["h5py"]),
+        ("mcap", None, &["rosbags"]),
     ] {
         // The same events as a whole file of this format, for `repair --out` to copy.
         let whole = work.join(format!("whole.{ext}"));
@@ -511,7 +512,7 @@ fn every_signal_stops_with_its_files_whole() {
         (libc::SIGTERM, "term"),
         (libc::SIGHUP, "hup"),
     ] {
-        for ext in ["csv", "aedat4", "npz", "h5"] {
+        for ext in ["csv", "aedat4", "npz", "h5", "mcap"] {
             let out = dir.join(format!("{name}.{ext}"));
             let case = format!("run .{ext} {name}");
             let child = v2ce()

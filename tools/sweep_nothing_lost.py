@@ -162,7 +162,7 @@ def sweep_targets(v2ce, work):
 
 
 FORMATS = [("csv", None), ("raw", "2"), ("raw", "3"), ("aedat4", None), ("npz", None),
-           ("h5", None)]
+           ("h5", None), ("mcap", None)]
 
 
 def mount_tmpfs(path, size):

@@ -25,6 +25,7 @@ import sys
 import threading
 
 import numpy as np
+from pathlib import Path
 
 
 def expected(path):
@@ -138,8 +139,44 @@ def read_h5py(path):
     return columns(t + t_offset, x, y, p)
 
 
+def read_rosbags(path):
+    """A rosbag2 .mcap as rosbags reads it: its event_camera_msgs/msg/EventPacket messages
+    (evt3), whose payloads end to end are one EVT 3.0 stream, decoded by faery behind a RAW
+    header; each event's time is its packet's stamp plus its sensor time less the packet's
+    first (the stamps are the event times)."""
+    import tempfile
+
+    import faery
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    payloads, size = [], None
+    with AnyReader([Path(path)], default_typestore=store) as r:
+        for con, _, raw in r.messages():
+            if con.msgtype != "event_camera_msgs/msg/EventPacket":
+                continue
+            m = r.deserialize(raw, con.msgtype)
+            if m.encoding != "evt3":
+                raise SystemExit(f"encoding {m.encoding}")
+            size = (int(m.width), int(m.height))
+            payloads.append(bytes(m.events))
+    if not payloads:
+        return columns([], [], [], [])
+    with tempfile.NamedTemporaryFile(suffix=".raw", delete=False) as f:
+        f.write(("%% evt 3.0\n%% geometry %dx%d\n%% end\n" % size).encode())
+        for p in payloads:
+            f.write(p)
+    try:
+        arr = faery.events_stream_from_file(f.name).to_array()
+    finally:
+        os.unlink(f.name)
+    return columns(arr["t"], arr["x"], arr["y"], arr["on"])
+
+
 READERS = {
     "numpy": read_numpy,
+    "rosbags": read_rosbags,
     "h5py": read_h5py,
     "faery": read_faery,
     "aedat": read_aedat,
