@@ -78,7 +78,7 @@ pub fn repair(path: &Path, output: Option<&Path>) -> Result<Report> {
     let format = Format::for_output(path, None, format::Compression::default()).map_err(|_| {
         Error::format(
             path,
-            "cannot repair this file type (expected .aedat4, .raw, .csv, .npz, .h5 or .hdf5)",
+            "cannot repair this file type (expected .aedat4, .raw, .csv, .npz, .h5, .hdf5 or .mcap)",
         )
     })?;
     let journal_path = journal::path_for(path);

@@ -192,11 +192,16 @@ pub fn run(config: &Config, stop: &AtomicBool) -> Result<Report> {
     let s = &report.stats;
     let l = &s.latency_total;
     let summary = format!(
-        "stopped: {}; {} frames in, {} dropped, {} events out in {:.1} s; latency p50 {:.1} ms \
+        "stopped: {}; {} frames in, {} dropped{}, {} events out in {:.1} s; latency p50 {:.1} ms \
          p99 {:.1} ms max {:.1} ms; cpu {:.1} s; peak rss {} MiB{}",
         report.end.describe(),
         s.frames_in,
         s.frames_dropped,
+        if s.source_refused > 0 {
+            format!(", {} refused by the source", s.source_refused)
+        } else {
+            String::new()
+        },
         s.events_out,
         s.uptime_s,
         l.p50_ms,

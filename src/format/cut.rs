@@ -39,8 +39,13 @@ pub fn cut_in_place(path: &Path) -> Result<u64> {
 }
 
 /// After a cut: an `.aedat4` that was finished (its data table, after the packets, is cut
-/// away) is marked unfinished, so that readers do not look for the table.
+/// away) is marked unfinished, so that readers do not look for the table; an `.mcap` gets its
+/// closing records.
 pub fn unfinished(path: &Path, format: Format) -> Result<()> {
+    if format == Format::Mcap {
+        // A bag cut after a whole record is closed again.
+        return super::mcap::close_after_cut(path);
+    }
     if !matches!(format, Format::Aedat4(_)) {
         return Ok(());
     }
@@ -127,8 +132,9 @@ pub fn whole_prefix(path: &Path, format: Format) -> Result<u64> {
             }
             Ok(cut)
         }
-        // Closed by their own rules: `.npz`/`.h5` from a journal, `.mcap` in `cut_in_place`.
-        Format::Npz | Format::Hdf5 | Format::Mcap => Ok(len),
+        Format::Mcap => super::mcap::whole_prefix(path),
+        // Written whole from their journal.
+        Format::Npz | Format::Hdf5 => Ok(len),
     }
 }
 

@@ -33,8 +33,16 @@ pub const PACKET_US: i64 = 1000;
 
 const MAGIC: &[u8; 8] = b"\x89MCAP0\r\n";
 
-fn mcap_error(what: &str, e: impl std::fmt::Display) -> Error {
-    Error::invalid("MCAP", format!("{what}: {e}"))
+/// An error of the container, with the causes it wraps (the OS's "No space left on device"
+/// under the crate's "I/O error from writing").
+fn mcap_error(what: &str, e: impl std::error::Error) -> Error {
+    let mut text = format!("{what}: {e}");
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        text.push_str(&format!(": {c}"));
+        cause = c.source();
+    }
+    Error::invalid("MCAP", text)
 }
 
 /// A stamp in nanoseconds for the message's log time (0 for times before 1970).
@@ -274,10 +282,10 @@ impl<R: Read> Decoder<R> {
                 Some(_) => {}
             }
             if m.channel.message_encoding != "cdr" {
-                return Err(mcap_error(
-                    "channel",
+                return Err(Error::invalid(
+                    "MCAP",
                     format!(
-                        "{} holds '{}' messages (v2ce reads cdr)",
+                        "channel {} holds '{}' messages (v2ce reads cdr)",
                         m.channel.topic, m.channel.message_encoding
                     ),
                 ));
@@ -329,27 +337,16 @@ fn count_events(path: &Path) -> Result<u64> {
     }
 }
 
-/// Closes a bag whose writing stopped (a full disk, a killed run) in place: a bag that reads
-/// whole is left as it is; another is cut after its last whole record and closed with a data
-/// end, a footer and the magic (51 bytes; where even those do not fit, one more message is
-/// cut away). Returns the events it then holds. A file that does not start with the magic is
-/// refused.
-pub fn close_in_place(path: &Path) -> Result<u64> {
-    if let Ok(n) = count_events(path) {
-        return Ok(n);
-    }
-    let mut f = std::fs::OpenOptions::new()
-        .read(true)
-        .write(true)
-        .open(path)
-        .map_err(|e| Error::io(path, e))?;
+/// The ends of the whole records after the magic, up to a data end or footer (where a writer
+/// had begun closing) or the first record cut short; an error for a file without the magic.
+fn record_ends(path: &Path) -> Result<Vec<u64>> {
+    let f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
     let len = f.metadata().map_err(|e| Error::io(path, e))?.len();
-    let mut r = BufReader::new(&mut f);
+    let mut r = BufReader::new(f);
     let mut magic = [0u8; 8];
     if r.read_exact(&mut magic).is_err() || &magic != MAGIC {
         return Err(Error::format(path, "not an MCAP file (no magic)"));
     }
-    // Walk the records: opcode (1 byte), length (u64), body; keep where each one ends.
     let mut ends = Vec::new();
     let mut end = 8u64;
     loop {
@@ -357,7 +354,6 @@ pub fn close_in_place(path: &Path) -> Result<u64> {
         if end + 9 > len || r.read_exact(&mut head).is_err() {
             break;
         }
-        // A data end or footer: the writer had begun closing; cut there.
         if head[0] == 0x0F || head[0] == 0x02 {
             break;
         }
@@ -370,8 +366,24 @@ pub fn close_in_place(path: &Path) -> Result<u64> {
         end = next;
         ends.push(end);
     }
-    drop(r);
-    let mut tail = Vec::new();
+    Ok(ends)
+}
+
+/// The length of `path`'s whole part: all of it when it reads whole, else the end of its last
+/// whole record (for `repair`, which cuts there and closes it with [`close_after_cut`]).
+pub fn whole_prefix(path: &Path) -> Result<u64> {
+    if count_events(path).is_ok() {
+        return Ok(std::fs::metadata(path)
+            .map_err(|e| Error::io(path, e))?
+            .len());
+    }
+    Ok(record_ends(path)?.last().copied().unwrap_or(8))
+}
+
+/// The closing records of a bag cut after a whole record: a data end, a footer without a
+/// summary, the magic (51 bytes).
+fn closing_bytes() -> Vec<u8> {
+    let mut tail = Vec::with_capacity(51);
     // Data end: opcode 0x0F, length 4, data section CRC 0 (not checked).
     tail.push(0x0F);
     tail.extend_from_slice(&4u64.to_le_bytes());
@@ -381,6 +393,37 @@ pub fn close_in_place(path: &Path) -> Result<u64> {
     tail.extend_from_slice(&20u64.to_le_bytes());
     tail.extend_from_slice(&[0u8; 20]);
     tail.extend_from_slice(MAGIC);
+    tail
+}
+
+/// Closes a bag that `repair` has cut after its last whole record (appends
+/// [`closing_bytes`]).
+pub fn close_after_cut(path: &Path) -> Result<()> {
+    let mut f = std::fs::OpenOptions::new()
+        .append(true)
+        .open(path)
+        .map_err(|e| Error::io(path, e))?;
+    f.write_all(&closing_bytes())
+        .and_then(|_| f.sync_all())
+        .map_err(|e| Error::io(path, e))
+}
+
+/// Closes a bag whose writing stopped (a full disk, a killed run) in place: a bag that reads
+/// whole is left as it is; another is cut after its last whole record and closed with a data
+/// end, a footer and the magic (51 bytes; where even those do not fit, one more record is cut
+/// away). Returns the events it then holds. A file that does not start with the magic is
+/// refused.
+pub fn close_in_place(path: &Path) -> Result<u64> {
+    if let Ok(n) = count_events(path) {
+        return Ok(n);
+    }
+    let ends = record_ends(path)?;
+    let mut end = ends.last().copied().unwrap_or(8);
+    let mut f = std::fs::OpenOptions::new()
+        .write(true)
+        .open(path)
+        .map_err(|e| Error::io(path, e))?;
+    let tail = closing_bytes();
     loop {
         let closed = f
             .set_len(end)
@@ -390,7 +433,7 @@ pub fn close_in_place(path: &Path) -> Result<u64> {
         match closed {
             Ok(()) => break,
             Err(e) => {
-                // No room for the closing bytes: give up the last message and try again.
+                // No room for the closing bytes: give up the last record and try again.
                 match ends.iter().rev().find(|e| **e < end) {
                     Some(&before) if e.raw_os_error() == Some(libc::ENOSPC) => end = before,
                     _ => return Err(Error::io(path, e)),
@@ -412,7 +455,14 @@ mod tests {
     fn zstd_chunked_bags_are_read() {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/zstd_chunks.mcap");
         let expected: Vec<Event> = (0..8_000i64)
-            .map(|i| Event::new(5_000_000 + i * 7, (i % 97) as u16, (i % 61) as u16, i % 3 == 0))
+            .map(|i| {
+                Event::new(
+                    5_000_000 + i * 7,
+                    (i % 97) as u16,
+                    (i % 61) as u16,
+                    i % 3 == 0,
+                )
+            })
             .collect();
         let mut d = Decoder::open(&path, None).unwrap();
         assert_eq!(d.size(), Some((128, 64)));

@@ -103,6 +103,12 @@ pub trait FrameSource: Send {
     fn encoding(&self) -> SourceEncoding {
         SourceEncoding::Srgb
     }
+
+    /// Messages refused so far and skipped, the stream going on (a ROS 2 topic's bad images);
+    /// 0 for sources that end at their first bad frame instead.
+    fn refused(&self) -> u64 {
+        0
+    }
 }
 
 /// How to time frames whose source carries no timestamps (image folders).
@@ -153,6 +159,10 @@ impl FrameSource for TimeChecked {
 
     fn encoding(&self) -> SourceEncoding {
         self.0.encoding()
+    }
+
+    fn refused(&self) -> u64 {
+        self.0.refused()
     }
 }
 

@@ -3,7 +3,7 @@
 //!
 //! The header stamps are the frame times. A message that does not decode, whose fields
 //! disagree, whose size differs from the first frame's, or whose stamp does not come after
-//! the last frame's is refused: counted ([`TopicSource::refused`]), logged with its reason, and
+//! the last frame's is refused: counted ([`FrameSource::refused`], the pipeline's `source_refused`), logged with its reason, and
 //! the stream goes on. A flooding publisher costs at most the reader's history (`DEPTH`
 //! images; older ones are replaced). No image for [`IDLE`] is an error, on which the daemon
 //! reopens the source with its usual backoff (a publisher that went away and came back).
@@ -75,11 +75,6 @@ impl TopicSource {
         s.last_t = frame.t;
         s.first = Some(frame);
         Ok(s)
-    }
-
-    /// Messages refused so far.
-    pub fn refused(&self) -> u64 {
-        self.refused
     }
 
     fn refuse(&mut self, why: &str) {
@@ -171,5 +166,9 @@ impl FrameSource for TopicSource {
 
     fn encoding(&self) -> SourceEncoding {
         self.encoding
+    }
+
+    fn refused(&self) -> u64 {
+        self.refused
     }
 }

@@ -297,7 +297,11 @@ mod tests {
             }
             let f = to_frame(&image(enc, w, h, step, data)).unwrap();
             assert_eq!((f.width, f.height, f.t), (4, 3, 2_000_123), "{enc}");
-            assert!(f.luma.iter().all(|&v| v.abs_diff(gray) <= 1), "{enc}: {:?}", f.luma);
+            assert!(
+                f.luma.iter().all(|&v| v.abs_diff(gray) <= 1),
+                "{enc}: {:?}",
+                f.luma
+            );
         }
         // mono16 is linear, either byte order.
         let mut img = image("mono16", 2, 1, 4, vec![0x34, 0x12, 0x78, 0x56]);
@@ -312,12 +316,12 @@ mod tests {
         let ok = image("mono8", 4, 2, 4, vec![0; 8]);
         assert!(to_frame(&ok).is_ok());
         for bad in [
-            image("mono8", 4, 2, 3, vec![0; 6]),      // step shorter than a row
-            image("mono8", 4, 2, 4, vec![0; 7]),      // data short
-            image("mono8", 4, 2, 4, vec![0; 9]),      // data long
+            image("mono8", 4, 2, 3, vec![0; 6]), // step shorter than a row
+            image("mono8", 4, 2, 4, vec![0; 7]), // data short
+            image("mono8", 4, 2, 4, vec![0; 9]), // data long
             image("bayer_rggb8", 4, 2, 4, vec![0; 8]), // not read
-            image("yuyv", 3, 2, 6, vec![0; 12]),      // odd width for 4:2:2
-            image("mono8", 0, 2, 0, vec![]),          // no pixels
+            image("yuyv", 3, 2, 6, vec![0; 12]), // odd width for 4:2:2
+            image("mono8", 0, 2, 0, vec![]),     // no pixels
             image("mono8", 100_000, 1, 100_000, vec![0; 10]), // past the limits
         ] {
             assert!(to_frame(&bad).is_err(), "{bad:?}");

@@ -119,6 +119,12 @@ fn pipeline(x: &mut Exposition, s: &Snapshot) {
         s.source_restarts,
     );
     x.single(
+        "v2ce_source_refused_total",
+        "counter",
+        "Messages the source refused (a ROS 2 image that does not decode or disagrees).",
+        s.source_refused,
+    );
+    x.single(
         "v2ce_events_total",
         "counter",
         "Events handed to the outputs.",

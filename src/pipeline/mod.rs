@@ -502,6 +502,7 @@ fn capture_stage(
     let (mut offset, mut period, mut realign) = (0i64, 0i64, false);
     let mut last_t: Option<i64> = None;
     let mut lag_anchor: Option<(i64, Instant)> = None;
+    let mut refused_seen = 0u64;
     loop {
         if ctx.stopping() {
             return End::Stopped;
@@ -512,7 +513,15 @@ fn capture_stage(
         if past_deadline() {
             return End::Duration;
         }
-        match current.next_frame() {
+        let read = current.next_frame();
+        let refused = current.refused();
+        if refused > refused_seen {
+            ctx.counters
+                .source_refused
+                .fetch_add(refused - refused_seen, Ordering::Relaxed);
+        }
+        refused_seen = refused;
+        match read {
             Ok(Some(mut frame)) => {
                 if realign {
                     // A looped replay goes on one frame period after the last frame.

@@ -30,6 +30,9 @@ pub struct Counters {
     pub events_out: AtomicU64,
     /// Times the source was reopened (a camera that came back, a replay that looped).
     pub source_restarts: AtomicU64,
+    /// Messages the source refused (a ROS 2 image that does not decode, whose fields disagree,
+    /// whose size changed or whose stamp went back), the stream going on.
+    pub source_refused: AtomicU64,
     latency: Mutex<LatencyPair>,
     capture_lag: Mutex<LatencyPair>,
     processing: Mutex<LatencyPair>,
@@ -187,6 +190,8 @@ pub struct Snapshot {
     pub frames_late: u64,
     /// Times the source was reopened.
     pub source_restarts: u64,
+    /// Messages the source refused (see [`Counters::source_refused`]).
+    pub source_refused: u64,
     /// Events handed to the sinks.
     pub events_out: u64,
     /// Events per second since the previous snapshot.
@@ -294,6 +299,7 @@ impl Counters {
             frames_processed: AtomicU64::new(0),
             events_out: AtomicU64::new(0),
             source_restarts: AtomicU64::new(0),
+            source_refused: AtomicU64::new(0),
             latency: LatencyPair::new(),
             capture_lag: LatencyPair::new(),
             processing: LatencyPair::new(),
@@ -502,6 +508,7 @@ impl Counters {
             frames_out_of_order: out_of_order,
             frames_late: late,
             source_restarts: self.source_restarts.load(Ordering::Relaxed),
+            source_refused: self.source_refused.load(Ordering::Relaxed),
             events_out,
             events_per_s: (events_out - previous.events_out) as f64 / dt,
             frames_per_s: (frames_in - previous.frames_in) as f64 / dt,
