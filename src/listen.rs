@@ -528,10 +528,18 @@ fn listen_ros2(
         }
         next_seq = Some(packet.seq.saturating_add(1));
         events.clear();
-        if let Err(e) = format::event_packet::unpack(&packet, &mut events) {
-            tally.report.malformed += 1;
-            tracing::warn!("{topic}: packet {} refused: {e}", packet.seq);
-            continue;
+        match format::event_packet::unpack(&packet, &mut events) {
+            Err(e) => {
+                tally.report.malformed += 1;
+                tracing::warn!("{topic}: packet {} refused: {e}", packet.seq);
+                continue;
+            }
+            // Refused whole, as a datagram with a pixel off the sensor is.
+            Ok(u) if u.off_sensor > 0 => {
+                tally.report.off_sensor += 1;
+                continue;
+            }
+            Ok(_) => {}
         }
         tally.events(at, &mut events, true)?;
     }

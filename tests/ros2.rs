@@ -207,11 +207,16 @@ fn cyclone_images_feed_the_source_and_hostile_ones_are_counted() {
     let run = run.wait_with_output().unwrap();
     let log = String::from_utf8_lossy(&run.stderr);
     assert!(run.status.success(), "{log}");
-    // Six hostile images (short step, short data, unknown encoding, size against data, a
-    // stamp back in time, an absurd size), each refused and counted; the run went on.
-    assert!(log.contains("image refused (6 so far)"), "{log}");
-    assert!(!log.contains("image refused (7 so far)"), "{log}");
-    assert!(log.contains("40 frames in"), "{log}");
+    // Seven hostile messages (short step, short data, unknown encoding, size against data, a
+    // stamp back in time, an absurd size, bytes that are no Image), each refused and counted;
+    // the run went on.
+    assert!(log.contains("image refused (7 so far)"), "{log}");
+    assert!(!log.contains("image refused (8 so far)"), "{log}");
+    assert!(log.contains("malformed message"), "{log}");
+    assert!(
+        log.contains("40 frames in, 0 dropped, 7 refused by the source"),
+        "{log}"
+    );
     let conv = v2ce()
         .args(["convert", "--seed", "3"])
         .arg(d.join("fr"))
@@ -317,4 +322,138 @@ fn rosbags_reads_our_bags_and_we_read_its_image_bags() {
         .unwrap();
     assert!(!c.status.success());
     assert!(String::from_utf8_lossy(&c.stderr).contains("/cam/image_raw"));
+}
+
+#[test]
+fn listen_checks_what_a_cyclone_publisher_sends() {
+    let Some(py) = peer_python("listen_checks_what_a_cyclone_publisher_sends") else {
+        return;
+    };
+    let dom = domain(2);
+    let listen = v2ce()
+        .args([
+            "listen",
+            "--ros2",
+            "/v2ce_test/packets",
+            "--idle",
+            "3",
+            "--json",
+        ])
+        .env("ROS_DOMAIN_ID", &dom)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let publish = Command::new(&py)
+        .arg(peer())
+        .args(["publish-packets", "/v2ce_test/packets"])
+        .env("ROS_DOMAIN_ID", &dom)
+        .output()
+        .unwrap();
+    assert!(
+        publish.status.success(),
+        "{}",
+        String::from_utf8_lossy(&publish.stderr)
+    );
+    let out = listen.wait_with_output().unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{text}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report: serde_json::Value = serde_json::from_str(text.lines().last().unwrap()).unwrap();
+    // Two good packets of two events; seq 1 missing; an encoding not read, words cut in half
+    // and a sensor of width 0 refused as malformed; a pixel off the sensor refused whole.
+    assert_eq!(report["events"], 4, "{report}");
+    assert_eq!(report["messages"], 6, "{report}");
+    assert_eq!(report["seq_gaps"], 1, "{report}");
+    assert_eq!(report["malformed"], 3, "{report}");
+    assert_eq!(report["off_sensor"], 1, "{report}");
+    assert_eq!(report["first_t"], 1_000_000, "{report}");
+    assert_eq!(report["last_t"], 1_000_002, "{report}");
+}
+
+/// A publisher that goes away is a lost source (no image for 5 s), reopened with the
+/// daemon's backoff; frames from the publisher that comes back go on where the first left
+/// off, and a flood of them costs drops that are counted, never the daemon.
+#[test]
+fn a_publisher_that_goes_away_and_floods_back_is_survived() {
+    let Some(py) = peer_python("a_publisher_that_goes_away_and_floods_back_is_survived") else {
+        return;
+    };
+    let dir = common::temp_dir("ros2-back");
+    let d: &Path = &dir;
+    frames(&py, d);
+    let dom = domain(3);
+    let config = d.join("back.toml");
+    std::fs::write(
+        &config,
+        "[run]\nreconnect_min_ms = 200\nreconnect_max_ms = 400\n",
+    )
+    .unwrap();
+    let run = v2ce()
+        .args([
+            "run",
+            "--source",
+            "ros2:/v2ce_test/back",
+            "--max-frames",
+            "40",
+        ])
+        .arg("--config")
+        .arg(&config)
+        .args(["--udp", "", "--out"])
+        .arg(d.join("back.csv"))
+        .env("ROS_DOMAIN_ID", &dom)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let publish = |extra: &[&str]| {
+        let o = Command::new(&py)
+            .arg(peer())
+            .args(["publish", "/v2ce_test/back"])
+            .arg(d.join("fr.npz"))
+            .args(extra)
+            .env("ROS_DOMAIN_ID", &dom)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    };
+    publish(&["--last", "15"]);
+    // Gone for longer than the source waits (5 s), then back, flooding.
+    std::thread::sleep(std::time::Duration::from_secs(7));
+    publish(&["--first", "15", "--flood"]);
+    let mut run = run;
+    let status = {
+        let started = std::time::Instant::now();
+        loop {
+            if let Some(s) = run.try_wait().unwrap() {
+                break Some(s);
+            }
+            if started.elapsed() > std::time::Duration::from_secs(30) {
+                break None;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(100));
+        }
+    };
+    if status.is_none() {
+        // The flood's last frames were dropped: the run waits for more; a signal ends it.
+        // SAFETY: kill sends SIGINT to the child's pid.
+        unsafe { libc::kill(run.id() as i32, libc::SIGINT) };
+    }
+    let out = run.wait_with_output().unwrap();
+    let log = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{log}");
+    assert!(log.contains("the publisher went away"), "{log}");
+    assert!(log.contains("source back: ros2 /v2ce_test/back"), "{log}");
+    let line = log.lines().find(|l| l.contains("stopped: ")).unwrap();
+    let frames_in: u64 = line
+        .split(" frames in")
+        .next()
+        .and_then(|s| s.rsplit(' ').next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("{line}"));
+    assert!(frames_in > 15, "{line}");
+    assert!(std::fs::read(d.join("back.csv")).unwrap().len() > 1000);
 }

@@ -149,7 +149,7 @@ def subscribe(topic, out, seconds, start_after=0):
     Path(str(out) + ".json").write_text(json.dumps(summary))
 
 
-def publish(topic, frames_path, hostile=False):
+def publish(topic, frames_path, hostile=False, first=0, last=None, flood=False):
     from cyclonedds.domain import DomainParticipant
     from cyclonedds.topic import Topic
     from cyclonedds.pub import DataWriter
@@ -157,14 +157,30 @@ def publish(topic, frames_path, hostile=False):
     from cyclonedds.util import duration
     Time, Header, _, Image = dds_types()
     data = np.load(frames_path)
-    frames, times = data["frames"], data["t_us"]
+    frames, times = data["frames"][first:last], data["t_us"][first:last]
     dp = DomainParticipant(int(os.environ.get("ROS_DOMAIN_ID", "0")))
     t = Topic(dp, "rt/" + topic.lstrip("/"), Image)
+    junk_writer = None
+    if hostile:
+        # Bytes that are no Image under the Image type name: a second participant's writer of
+        # another layout (Cyclone checks nothing of the reader's, which takes raw CDR).
+        from cyclonedds.idl import IdlStruct
+        from cyclonedds.idl.types import sequence, uint8
+
+        @dataclass
+        class Junk(IdlStruct, typename="sensor_msgs::msg::dds_::Image_"):
+            junk: sequence[uint8]
+
+        dp2 = DomainParticipant(int(os.environ.get("ROS_DOMAIN_ID", "0")))
+        junk_writer = DataWriter(dp2, Topic(dp2, "rt/" + topic.lstrip("/"), Junk),
+                                 qos=Qos(Policy.Reliability.Reliable(duration(seconds=5)),
+                                         Policy.History.KeepLast(100)))
     qos = Qos(Policy.Reliability.Reliable(duration(seconds=5)), Policy.History.KeepLast(1000))
     writer = DataWriter(dp, t, qos=qos)
-    # Wait for v2ce's reader.
+    # Wait for v2ce's reader (and the junk writer's match, where there is one).
     for _ in range(500):
-        if writer.get_matched_subscriptions():
+        if writer.get_matched_subscriptions() and (
+                junk_writer is None or junk_writer.get_matched_subscriptions()):
             break
         time.sleep(0.02)
     print("matched", len(writer.get_matched_subscriptions()), flush=True)
@@ -191,10 +207,11 @@ def publish(topic, frames_path, hostile=False):
             writer.write(image(i, t_us, g, width=w * 2))                  # size disagrees with data
             writer.write(image(i, int(times[0]), g))                      # a stamp that goes back
             writer.write(image(i, t_us, g, width=100000, height=100000, step=100000))  # absurd size
+            junk_writer.write(Junk(junk=[0xFF] * 37))                    # malformed CDR
             time.sleep(0.2)
         writer.write(image(i, t_us, f))
-        last = t_us
-        time.sleep(0.01)
+        if not flood:
+            time.sleep(0.01)
     time.sleep(2)
     print("published", len(frames), flush=True)
 
@@ -232,6 +249,45 @@ def make_frames(out_npz, folder):
     for i, f in enumerate(frames):
         (folder / ("%04d.png" % i)).write_bytes(gray_png(f))
     (folder / "times.txt").write_text("".join("%.6f\n" % (t / 1e6) for t in times))
+
+
+def publish_packets(topic):
+    """EventPackets for `v2ce listen --ros2`: two good ones (seq 0 and 2: one missing), then
+    hostile ones (an encoding not read, words cut in half, a sensor of width 0, an event off
+    the sensor)."""
+    from cyclonedds.domain import DomainParticipant
+    from cyclonedds.topic import Topic
+    from cyclonedds.pub import DataWriter
+    from cyclonedds.core import Qos, Policy
+    from cyclonedds.util import duration
+    Time, Header, EventPacket, _ = dds_types()
+    dp = DomainParticipant(int(os.environ.get("ROS_DOMAIN_ID", "0")))
+    t = Topic(dp, "rt/" + topic.lstrip("/"), EventPacket)
+    writer = DataWriter(dp, t, qos=Qos(Policy.Reliability.Reliable(duration(seconds=5)),
+                                       Policy.History.KeepLast(100)))
+    for _ in range(500):
+        if writer.get_matched_subscriptions():
+            break
+        time.sleep(0.02)
+    time.sleep(0.5)
+
+    def words(*ws):
+        return list(np.array(ws, dtype="<u2").tobytes())
+
+    def packet(seq, events, encoding="evt3", width=64, height=32):
+        return EventPacket(header=Header(stamp=Time(sec=1, nanosec=seq * 1000), frame_id="x"),
+                           height=height, width=width, seq=seq, time_base=0, encoding=encoding,
+                           is_bigendian=False, events=events)
+    # time high 0, time low 5, row 3, x 7 ON; then x 9 OFF
+    good = words(0x8000, 0x6005, 0x0003, 0x2807, 0x2009)
+    writer.write(packet(0, good))
+    writer.write(packet(2, good))
+    writer.write(packet(3, good, encoding="mono"))
+    writer.write(packet(4, good[:-1]))
+    writer.write(packet(5, good, width=0))
+    writer.write(packet(6, words(0x8000, 0x6005, 0x0003, 0x2800 | 100)))
+    time.sleep(2)
+    print("published", flush=True)
 
 
 def bag_read(bag, out):
@@ -288,7 +344,12 @@ if __name__ == "__main__":
             start_after = int(sys.argv[sys.argv.index("--start-after") + 1])
         subscribe(sys.argv[2], sys.argv[3], float(sys.argv[4]), start_after)
     elif cmd == "publish":
-        publish(sys.argv[2], sys.argv[3], "--hostile" in sys.argv)
+        def opt(name, default):
+            return int(sys.argv[sys.argv.index(name) + 1]) if name in sys.argv else default
+        publish(sys.argv[2], sys.argv[3], "--hostile" in sys.argv, opt("--first", 0),
+                opt("--last", None), "--flood" in sys.argv)
+    elif cmd == "publish-packets":
+        publish_packets(sys.argv[2])
     elif cmd == "bag-read":
         bag_read(sys.argv[2], sys.argv[3])
     elif cmd == "frames":
