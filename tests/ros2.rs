@@ -90,7 +90,7 @@ fn cyclone_subscribes_and_every_event_equals_convert() {
             "--source",
             "fixture",
             "--max-frames",
-            "45",
+            "90",
             "--udp",
             "",
         ])
@@ -102,18 +102,39 @@ fn cyclone_subscribes_and_every_event_equals_convert() {
         ])
         .args(["--queue-policy", "block", "--seed", "5"])
         .env("ROS_DOMAIN_ID", &dom)
-        .output()
+        .stderr(Stdio::piped())
+        .spawn()
         .unwrap();
+    // A second subscriber that starts while the stream runs (the run waits for the first
+    // subscriber, 2 s more, then streams 3 s of frames).
+    std::thread::sleep(std::time::Duration::from_millis(3500));
+    let late = Command::new(&py)
+        .arg(peer())
+        .args(["subscribe", "/v2ce_test/events"])
+        .arg(d.join("late.raw"))
+        .arg("60")
+        .env("ROS_DOMAIN_ID", &dom)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let run = run.wait_with_output().unwrap();
     let log = String::from_utf8_lossy(&run.stderr);
     assert!(run.status.success(), "{log}");
     let sub = sub.wait_with_output().unwrap();
     assert!(sub.status.success());
+    let late = late.wait_with_output().unwrap();
+    assert!(
+        late.status.success(),
+        "{}",
+        String::from_utf8_lossy(&late.stderr)
+    );
     let conv = v2ce()
         .args([
             "convert",
             "fixture",
             "--max-frames",
-            "45",
+            "90",
             "--seed",
             "5",
             "--evt",
@@ -145,6 +166,32 @@ fn cyclone_subscribes_and_every_event_equals_convert() {
     );
     assert!(!a.starts_with("0 "), "{a}");
     assert_eq!(a, b);
+    // The late subscriber: it missed the first packets, and every packet it got decodes alone
+    // and, end to end, its events are convert's from its first packet's time on.
+    let late = json(&d.join("late.raw.json"));
+    let seqs: Vec<u64> = serde_json::from_value(late["seqs"].clone()).unwrap();
+    assert!(seqs.first().is_some_and(|s| *s > 0), "{seqs:?}");
+    assert!(seqs.windows(2).all(|w| w[1] == w[0] + 1));
+    let alone: Vec<u64> = serde_json::from_value(late["alone"].clone()).unwrap();
+    assert!(
+        !alone.is_empty() && alone.iter().all(|n| *n > 0),
+        "{alone:?}"
+    );
+    let same = Command::new(&py)
+        .args([
+            "-c",
+            "import sys, faery, numpy as np\n\
+             a = faery.events_stream_from_file(sys.argv[1]).to_array()\n\
+             b = faery.events_stream_from_file(sys.argv[2]).to_array()\n\
+             b = b[b['t'] >= a['t'][0]]\n\
+             print(len(a), len(b), all(np.array_equal(a[k], b[k]) for k in ['t','x','y','on']) if len(a) == len(b) else False)",
+        ])
+        .arg(d.join("late.raw"))
+        .arg(d.join("conv.raw"))
+        .output()
+        .unwrap();
+    let same = String::from_utf8_lossy(&same.stdout);
+    assert!(same.trim().ends_with("True"), "late subscriber: {same}");
 }
 
 fn frames(py: &Path, d: &Path) {
