@@ -502,7 +502,7 @@ fn listen_ros2(
         crate::ros2::msg::EVENT_PACKET,
         crate::ros2::dds::Qos {
             reliable: true,
-            depth: 10_000,
+            depth: 1000,
         },
     )?;
     ready(&format!("{topic} (domain {domain})"));

@@ -3,9 +3,12 @@
 //!
 //! The header stamps are the frame times. A message that does not decode, whose fields
 //! disagree, whose size differs from the first frame's, or whose stamp does not come after
-//! the last frame's is refused: counted ([`FrameSource::refused`], the pipeline's `source_refused`), logged with its reason, and
-//! the stream goes on. A flooding publisher costs at most the reader's history (`DEPTH`
-//! images; older ones are replaced). No image for [`IDLE`] is an error, on which the daemon
+//! the last frame's is refused: counted ([`FrameSource::refused`], the pipeline's
+//! `source_refused`), logged with its reason, and the stream goes on. A flooding publisher
+//! costs at most the reader's history ([`DEPTH`] images; older ones are replaced, as a camera
+//! driver's buffers are). The transport reassembles a fragmented message into a buffer of the
+//! size its sender declares (the `rustdds` crate, before v2ce sees it): a bound there would
+//! have to come from the crate. No image for [`IDLE`] is an error, on which the daemon
 //! reopens the source with its usual backoff (a publisher that went away and came back).
 
 use std::time::Duration;
@@ -16,7 +19,7 @@ use crate::ros2::dds::{Participant, Qos, Subscription};
 use crate::ros2::msg::{self, Image};
 
 /// The images the reader keeps for a consumer that is behind.
-pub const DEPTH: u32 = 64;
+pub const DEPTH: u32 = 16;
 
 /// How long the source waits for an image before it calls the publisher gone.
 pub const IDLE: Duration = Duration::from_secs(5);
