@@ -74,13 +74,13 @@ fn cyclone_subscribes_and_every_event_equals_convert() {
     let dir = common::temp_dir("ros2-sub");
     let d: &Path = &dir;
     let dom = domain(0);
-    let sub = Command::new(&py)
+    let mut sub = Command::new(&py)
         .arg(peer())
         .args(["subscribe", "/v2ce_test/events"])
         .arg(d.join("sub.raw"))
         .arg("90")
         .env("ROS_DOMAIN_ID", &dom)
-        .stdout(Stdio::null())
+        .stdout(Stdio::piped())
         .stderr(Stdio::null())
         .spawn()
         .unwrap();
@@ -105,9 +105,18 @@ fn cyclone_subscribes_and_every_event_equals_convert() {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    // A second subscriber that starts while the stream runs (the run waits for the first
-    // subscriber, 2 s more, then streams 3 s of frames).
-    std::thread::sleep(std::time::Duration::from_millis(3500));
+    // A second subscriber that starts while the stream runs: 1 s after the first subscriber
+    // got its first packet (the stream lasts 3 s).
+    {
+        use std::io::BufRead;
+        let mut lines = std::io::BufReader::new(sub.stdout.take().unwrap()).lines();
+        while let Some(Ok(line)) = lines.next() {
+            if line == "first" {
+                break;
+            }
+        }
+    }
+    std::thread::sleep(std::time::Duration::from_millis(1000));
     let late = Command::new(&py)
         .arg(peer())
         .args(["subscribe", "/v2ce_test/events"])

@@ -120,6 +120,8 @@ def subscribe(topic, out, seconds, start_after=0):
     seen = 0
     while time.time() < end:
         got = reader.take(1000)
+        if got and seen == 0:
+            print("first", flush=True)
         for s in got:
             seen += 1
             if seen <= start_after:
