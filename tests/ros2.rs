@@ -263,14 +263,15 @@ fn cyclone_images_feed_the_source_and_hostile_ones_are_counted() {
     let run = run.wait_with_output().unwrap();
     let log = String::from_utf8_lossy(&run.stderr);
     assert!(run.status.success(), "{log}");
-    // Seven hostile messages (short step, short data, unknown encoding, size against data, a
-    // stamp back in time, an absurd size, bytes that are no Image), each refused and counted;
-    // the run went on.
-    assert!(log.contains("image refused (7 so far)"), "{log}");
-    assert!(!log.contains("image refused (8 so far)"), "{log}");
+    // Eight hostile messages (short step, short data, unknown encoding, size against data, a
+    // stamp back in time, a stamp an hour ahead, an absurd size, bytes that are no Image),
+    // each refused and counted; the run went on.
+    assert!(log.contains("image refused (8 so far)"), "{log}");
+    assert!(!log.contains("image refused (9 so far)"), "{log}");
     assert!(log.contains("malformed message"), "{log}");
+    assert!(log.contains("jumps 3600.0 s ahead"), "{log}");
     assert!(
-        log.contains("40 frames in, 0 dropped, 7 refused by the source"),
+        log.contains("40 frames in, 0 dropped, 8 refused by the source"),
         "{log}"
     );
     let conv = v2ce()
@@ -430,7 +431,8 @@ fn listen_checks_what_a_cyclone_publisher_sends() {
     assert_eq!(report["last_t"], 1_000_002, "{report}");
 }
 
-/// A publisher that goes away is a lost source (no image for 5 s), reopened with the
+/// A bag played in a loop (stamps back at the start) is followed as a new timeline after two
+/// refusals; a publisher that goes away is a lost source (no image for 5 s), reopened with the
 /// daemon's backoff; frames from the publisher that comes back go on where the first left
 /// off, and a flood of them costs drops that are counted, never the daemon.
 #[test]
@@ -476,7 +478,9 @@ fn a_publisher_that_goes_away_and_floods_back_is_survived() {
             .unwrap();
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     };
-    publish(&["--last", "15"]);
+    // 15 frames, then the same again (a bag played in a loop: stamps back at the start): two
+    // refused, then followed as a new timeline.
+    publish(&["--last", "15", "--twice"]);
     // Gone for longer than the source waits (5 s), then back, flooding.
     std::thread::sleep(std::time::Duration::from_secs(7));
     publish(&["--first", "15", "--flood"]);
@@ -502,6 +506,7 @@ fn a_publisher_that_goes_away_and_floods_back_is_survived() {
     let log = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{log}");
     assert!(log.contains("the publisher went away"), "{log}");
+    assert!(log.contains("a new timeline"), "{log}");
     assert!(log.contains("source back: ros2 /v2ce_test/back"), "{log}");
     let line = log.lines().find(|l| l.contains("stopped: ")).unwrap();
     let frames_in: u64 = line

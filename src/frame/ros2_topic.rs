@@ -2,14 +2,17 @@
 //! (`--source ros2:/camera/image_raw`), converted as [`super::ros_image`] does.
 //!
 //! The header stamps are the frame times. A message that does not decode, whose fields
-//! disagree, whose size differs from the first frame's, or whose stamp does not come after
-//! the last frame's is refused: counted ([`FrameSource::refused`], the pipeline's
-//! `source_refused`), logged with its reason, and the stream goes on. A flooding publisher
-//! costs at most the reader's history ([`DEPTH`] images; older ones are replaced, as a camera
-//! driver's buffers are). The transport reassembles a fragmented message into a buffer of the
-//! size its sender declares (the `rustdds` crate, before v2ce sees it): a bound there would
-//! have to come from the crate. No image for [`IDLE`] is an error, on which the daemon
-//! reopens the source with its usual backoff (a publisher that went away and came back).
+//! disagree, whose size differs from the first frame's, whose stamp does not come after the
+//! last frame's or runs more than [`JUMP`] ahead of the wall clock is refused: counted
+//! ([`FrameSource::refused`], the pipeline's `source_refused`), logged with its reason, and the
+//! stream goes on; [`ADOPT_AFTER`] stamps off the timeline in a row are a new timeline (a
+//! publisher restarted, a bag played in a loop), followed from one frame period after the last
+//! frame. A flooding publisher costs at most the reader's history ([`DEPTH`] images; older ones
+//! are replaced, as a camera driver's buffers are). The transport reassembles a fragmented
+//! message into a buffer of the size its sender declares (the `rustdds` crate, before v2ce sees
+//! it): a bound there would have to come from the crate. No image for [`IDLE`] is an error, on
+//! which the daemon reopens the source with its usual backoff (a publisher that went away and
+//! came back).
 
 use std::time::Duration;
 
@@ -27,6 +30,12 @@ pub const IDLE: Duration = Duration::from_secs(5);
 /// How long opening waits for the first image.
 pub const FIRST_WAIT: Duration = Duration::from_secs(10);
 
+/// How far a stamp may run ahead of the wall clock since the last frame.
+pub const JUMP: Duration = Duration::from_secs(5);
+
+/// Stamps off the timeline in a row that make a new timeline.
+pub const ADOPT_AFTER: u32 = 3;
+
 /// The prefix of a ROS 2 source: `ros2:TOPIC`.
 pub const PREFIX: &str = "ros2:";
 
@@ -40,6 +49,14 @@ pub struct TopicSource {
     first: Option<Frame>,
     last_t: i64,
     refused: u64,
+    /// Added to every stamp since a new timeline was adopted.
+    shift: i64,
+    /// The last frame period, us.
+    period: i64,
+    /// Stamps off the timeline in a row.
+    strikes: u32,
+    /// When the last frame was taken.
+    arrived: Option<std::time::Instant>,
 }
 
 impl TopicSource {
@@ -63,6 +80,10 @@ impl TopicSource {
             first: None,
             last_t: i64::MIN,
             refused: 0,
+            shift: 0,
+            period: 1,
+            strikes: 0,
+            arrived: None,
         };
         let Some((frame, encoding)) = s.receive(FIRST_WAIT)? else {
             return Err(Error::invalid(
@@ -109,6 +130,11 @@ impl TopicSource {
                     continue;
                 }
             };
+            let mut frame = frame;
+            if let Err(e) = crate::time::check("frame time", frame.t) {
+                self.refuse(&e.to_string());
+                continue;
+            }
             if self.first.is_some() || self.size != (0, 0) {
                 if (frame.width, frame.height) != self.size {
                     self.refuse(&format!(
@@ -117,21 +143,60 @@ impl TopicSource {
                     ));
                     continue;
                 }
-                if frame.t <= self.last_t {
-                    self.refuse(&format!(
-                        "stamp {} us does not come after {} us",
-                        frame.t, self.last_t
-                    ));
-                    continue;
+                match self.timeline(frame.t) {
+                    Ok(t) => frame.t = t,
+                    Err(why) => {
+                        self.refuse(&why);
+                        continue;
+                    }
                 }
             }
-            if let Err(e) = crate::time::check("frame time", frame.t) {
-                self.refuse(&e.to_string());
-                continue;
-            }
+            self.arrived = Some(std::time::Instant::now());
             let enc = ros_image::encoding_of(&img).unwrap_or_default();
             return Ok(Some((frame, enc)));
         }
+    }
+}
+
+impl TopicSource {
+    /// The time of a frame stamped `stamp` on the source's timeline: the stamp (plus the shift
+    /// of an adopted timeline). A stamp that does not come after the last frame's, or that
+    /// runs ahead of the wall clock since the last frame by more than [`JUMP`], is refused;
+    /// [`ADOPT_AFTER`] such stamps in a row are a new timeline (a publisher restarted with
+    /// another clock, a bag played in a loop), which is then followed from one frame period
+    /// after the last frame.
+    fn timeline(&mut self, stamp: i64) -> std::result::Result<i64, String> {
+        let t = stamp.saturating_add(self.shift);
+        let waited = self
+            .arrived
+            .map_or(0, |a| a.elapsed().as_micros().min(i64::MAX as u128) as i64);
+        let why = if t <= self.last_t {
+            format!("stamp {t} us does not come after {} us", self.last_t)
+        } else if t - self.last_t > waited.saturating_add(JUMP.as_micros() as i64) {
+            format!(
+                "stamp {t} us jumps {:.1} s ahead of {} us, {:.1} s after it arrived",
+                (t - self.last_t) as f64 / 1e6,
+                self.last_t,
+                waited as f64 / 1e6
+            )
+        } else {
+            self.strikes = 0;
+            self.period = t - self.last_t;
+            return Ok(t);
+        };
+        self.strikes += 1;
+        if self.strikes < ADOPT_AFTER {
+            return Err(why);
+        }
+        self.strikes = 0;
+        let next = self.last_t.saturating_add(self.period.max(1));
+        self.shift = next.saturating_sub(stamp);
+        tracing::warn!(
+            "ros2 source {}: {ADOPT_AFTER} stamps in a row off the timeline ({why}): a new \
+             timeline (a publisher restarted, a bag looped), followed from {next} us",
+            self.topic
+        );
+        Ok(next)
     }
 }
 

@@ -120,8 +120,10 @@ def subscribe(topic, out, seconds, start_after=0):
     seen = 0
     while time.time() < end:
         got = reader.take(1000)
-        if got and seen == 0:
+        if any(hasattr(s, "seq") for s in got) and seen == 0:
             print("first", flush=True)
+        # A writer that went away reaches a reader as an invalid sample (no data): skipped.
+        got = [s for s in got if hasattr(s, "seq")]
         for s in got:
             seen += 1
             if seen <= start_after:
@@ -151,7 +153,7 @@ def subscribe(topic, out, seconds, start_after=0):
     Path(str(out) + ".json").write_text(json.dumps(summary))
 
 
-def publish(topic, frames_path, hostile=False, first=0, last=None, flood=False):
+def publish(topic, frames_path, hostile=False, first=0, last=None, flood=False, twice=False):
     from cyclonedds.domain import DomainParticipant
     from cyclonedds.topic import Topic
     from cyclonedds.pub import DataWriter
@@ -197,7 +199,10 @@ def publish(topic, frames_path, hostile=False, first=0, last=None, flood=False):
                      step=(w if step is None else step),
                      data=list(arr.tobytes()) if data is None else data)
 
-    last = 0
+    if twice:
+        # A bag played in a loop: the same frames again, their stamps back at the start.
+        frames = np.concatenate([frames, frames])
+        times = np.concatenate([times, times])
     for i, (f, t_us) in enumerate(zip(frames, times)):
         if hostile and i == len(frames) // 2:
             g = frames[0]
@@ -208,6 +213,7 @@ def publish(topic, frames_path, hostile=False, first=0, last=None, flood=False):
             writer.write(image(i, t_us, g, encoding="bayer_rggb8"))      # an encoding not read
             writer.write(image(i, t_us, g, width=w * 2))                  # size disagrees with data
             writer.write(image(i, int(times[0]), g))                      # a stamp that goes back
+            writer.write(image(i, t_us + 3600 * 10**6, g))                # a stamp an hour ahead
             writer.write(image(i, t_us, g, width=100000, height=100000, step=100000))  # absurd size
             junk_writer.write(Junk(junk=[0xFF] * 37))                    # malformed CDR
             time.sleep(0.2)
@@ -349,7 +355,7 @@ if __name__ == "__main__":
         def opt(name, default):
             return int(sys.argv[sys.argv.index(name) + 1]) if name in sys.argv else default
         publish(sys.argv[2], sys.argv[3], "--hostile" in sys.argv, opt("--first", 0),
-                opt("--last", None), "--flood" in sys.argv)
+                opt("--last", None), "--flood" in sys.argv, "--twice" in sys.argv)
     elif cmd == "publish-packets":
         publish_packets(sys.argv[2])
     elif cmd == "bag-read":
