@@ -14,8 +14,11 @@ fn v2ce() -> Command {
     Command::new(env!("CARGO_BIN_EXE_v2ce"))
 }
 
-fn peer() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/ros2_peer.py")
+/// `python tests/python/ros2_peer.py`, its arguments to follow.
+fn peer_cmd(py: &Path) -> Command {
+    let mut c = Command::new(py);
+    c.arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/ros2_peer.py"));
+    c
 }
 
 /// A domain of its own for each test of this process (ROS 2 allows 0 to 232).
@@ -74,8 +77,7 @@ fn cyclone_subscribes_and_every_event_equals_convert() {
     let dir = common::temp_dir("ros2-sub");
     let d: &Path = &dir;
     let dom = domain(0);
-    let mut sub = Command::new(&py)
-        .arg(peer())
+    let mut sub = peer_cmd(&py)
         .args(["subscribe", "/v2ce_test/events"])
         .arg(d.join("sub.raw"))
         .arg("90")
@@ -117,8 +119,7 @@ fn cyclone_subscribes_and_every_event_equals_convert() {
         }
     }
     std::thread::sleep(std::time::Duration::from_millis(1000));
-    let late = Command::new(&py)
-        .arg(peer())
+    let late = peer_cmd(&py)
         .args(["subscribe", "/v2ce_test/events"])
         .arg(d.join("late.raw"))
         .arg("60")
@@ -204,8 +205,7 @@ fn cyclone_subscribes_and_every_event_equals_convert() {
 }
 
 fn frames(py: &Path, d: &Path) {
-    let o = Command::new(py)
-        .arg(peer())
+    let o = peer_cmd(py)
         .arg("frames")
         .arg(d.join("fr.npz"))
         .arg(d.join("fr"))
@@ -247,8 +247,7 @@ fn cyclone_images_feed_the_source_and_hostile_ones_are_counted() {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    let publish = Command::new(&py)
-        .arg(peer())
+    let publish = peer_cmd(&py)
         .args(["publish", "/v2ce_test/image_raw"])
         .arg(d.join("fr.npz"))
         .arg("--hostile")
@@ -311,8 +310,7 @@ fn rosbags_reads_our_bags_and_we_read_its_image_bags() {
             assert!(c.output().unwrap().status.success());
         }
     }
-    let o = Command::new(&py)
-        .arg(peer())
+    let o = peer_cmd(&py)
         .arg("bag-read")
         .arg(d.join("ev.mcap"))
         .arg(d.join("bag.raw"))
@@ -340,8 +338,7 @@ fn rosbags_reads_our_bags_and_we_read_its_image_bags() {
     );
     // A bag of Images that rosbags wrote (two cameras): --topic picks one; its events equal
     // the same frames from PNGs with their times.
-    let o = Command::new(&py)
-        .arg(peer())
+    let o = peer_cmd(&py)
         .arg("bag-write")
         .arg(d.join("fr.npz"))
         .arg(d.join("images"))
@@ -401,8 +398,7 @@ fn listen_checks_what_a_cyclone_publisher_sends() {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    let publish = Command::new(&py)
-        .arg(peer())
+    let publish = peer_cmd(&py)
         .args(["publish-packets", "/v2ce_test/packets"])
         .env("ROS_DOMAIN_ID", &dom)
         .output()
@@ -468,8 +464,7 @@ fn a_publisher_that_goes_away_and_floods_back_is_survived() {
         .spawn()
         .unwrap();
     let publish = |extra: &[&str]| {
-        let o = Command::new(&py)
-            .arg(peer())
+        let o = peer_cmd(&py)
             .args(["publish", "/v2ce_test/back"])
             .arg(d.join("fr.npz"))
             .args(extra)

@@ -28,7 +28,7 @@ pub const DEFAULT_TOPIC: &str = "/event_camera/events";
 /// The frame id of v2ce's packets.
 pub const DEFAULT_FRAME_ID: &str = "event_camera";
 
-/// The span of one packet in a bag, us (as the `ros2` sink's default).
+/// The span of one packet in a bag, us (the `ros2` sink's default too).
 pub const PACKET_US: i64 = 1000;
 
 const MAGIC: &[u8; 8] = b"\x89MCAP0\r\n";
@@ -136,11 +136,6 @@ impl<W: Write + Seek> EventEncoder for Encoder<W> {
             w.flush().map_err(|e| mcap_error("flushing", e))?;
         }
         Ok(())
-    }
-
-    fn salvage(&mut self) -> Result<Option<u64>> {
-        // The writer (and its buffer, past the cut) is dropped by the caller's seal.
-        Ok(None)
     }
 }
 

@@ -172,16 +172,16 @@ impl TopicSource {
             .map_or(0, |a| a.elapsed().as_micros().min(i64::MAX as u128) as i64);
         let why = if t <= self.last_t {
             format!("stamp {t} us does not come after {} us", self.last_t)
-        } else if t - self.last_t > waited.saturating_add(JUMP.as_micros() as i64) {
+        } else if t.saturating_sub(self.last_t) > waited.saturating_add(JUMP.as_micros() as i64) {
             format!(
                 "stamp {t} us jumps {:.1} s ahead of {} us, {:.1} s after it arrived",
-                (t - self.last_t) as f64 / 1e6,
+                t.saturating_sub(self.last_t) as f64 / 1e6,
                 self.last_t,
                 waited as f64 / 1e6
             )
         } else {
             self.strikes = 0;
-            self.period = t - self.last_t;
+            self.period = t.saturating_sub(self.last_t);
             return Ok(t);
         };
         self.strikes += 1;

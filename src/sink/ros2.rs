@@ -29,8 +29,8 @@ use crate::ros2::msg;
 /// How long the first packet waits after `wait_subscribers` were matched.
 const SETTLE: Duration = Duration::from_secs(2);
 
-/// The topic events are published on unless told otherwise.
-pub const DEFAULT_TOPIC: &str = "/event_camera/events";
+/// The topic events are published on unless told otherwise (the one a bag's packets are on).
+pub use crate::format::mcap::DEFAULT_TOPIC;
 
 /// How a ROS 2 writer or reader delivers samples.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, clap::ValueEnum)]
@@ -76,7 +76,7 @@ impl Default for Ros2SinkConfig {
             topic: DEFAULT_TOPIC.into(),
             domain_id: None,
             frame_id: crate::format::mcap::DEFAULT_FRAME_ID.into(),
-            packet_us: 1000,
+            packet_us: crate::format::mcap::PACKET_US as u32,
             reliability: Reliability::Reliable,
             depth: 1000,
             emit: EmitMode::EventTime,
