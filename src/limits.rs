@@ -21,6 +21,18 @@ pub const MAX_INTERVALS: u64 = 10_000_000;
 /// whole; DSEC's and this project's `.h5` chunks are under 1 MiB).
 pub const MAX_CHUNK_BYTES: u64 = 256 << 20;
 
+/// The largest DDS sample (one ROS 2 message) that crosses from the DDS transport's process:
+/// the largest image a ROS 2 source takes ([`MAX_SIDE`] squared, 4 bytes a pixel) and 1 MiB
+/// more for its header; larger frames on the pipe end the transport.
+pub const MAX_DDS_SAMPLE_BYTES: u64 = (MAX_SIDE as u64) * (MAX_SIDE as u64) * 4 + (1 << 20);
+
+/// The data segment (heap, anonymous mappings, stacks) of the DDS transport's process: a
+/// sample as the transport reassembles it, its copy on the way out, and 250 MiB for the
+/// participant itself. The transport sizes a fragmented sample's buffer from what its sender
+/// declares, before anyone can look at it: a claim past this cap ends that process, not the
+/// daemon ([`crate::ros2::host`]).
+pub const DDS_HOST_MEMORY: u64 = 2 * MAX_DDS_SAMPLE_BYTES + (250 << 20);
+
 /// Most threads `V2CE_THREADS` may ask for (each is a helper thread with its own stack).
 pub const MAX_THREADS: usize = 256;
 

@@ -106,6 +106,9 @@ pub struct ListenReport {
     /// ROS 2 packets missing from the `seq` numbering (sent but not received, or before this
     /// receiver joined: not counted).
     pub seq_gaps: u64,
+    /// ROS 2: times the DDS transport's process was replaced (a peer's sample past its
+    /// memory cap ended it; see `ros2::host`).
+    pub transport_restarts: u64,
     /// Seconds from the first arrival to the last.
     pub seconds: f64,
     /// Events per second over that span.
@@ -496,8 +499,8 @@ fn listen_ros2(
     done: &dyn Fn(&Tally) -> bool,
     ready: impl FnOnce(&str),
 ) -> Result<ListenReport> {
-    let participant = crate::ros2::dds::Participant::new(domain)?;
-    let mut sub = participant.subscribe(
+    let mut sub = crate::ros2::host::Subscription::open(
+        domain,
         topic,
         crate::ros2::msg::EVENT_PACKET,
         crate::ros2::dds::Qos {
@@ -543,7 +546,9 @@ fn listen_ros2(
         }
         tally.events(at, &mut events, true)?;
     }
-    tally.finish()
+    let mut report = tally.finish()?;
+    report.transport_restarts = sub.restarts();
+    Ok(report)
 }
 
 /// A TCP stream whose reads wait out timeouts until `give_up` says so (the stream's own read

@@ -23,7 +23,7 @@ fn peer_cmd(py: &Path) -> Command {
 
 /// A domain of its own for each test of this process (ROS 2 allows 0 to 232).
 fn domain(test: u32) -> String {
-    (((std::process::id() % 50) * 4 + test) % 230 + 1).to_string()
+    (((std::process::id() % 46) * 5 + test) % 230 + 1).to_string()
 }
 
 /// The interpreter when it has cyclonedds, rosbags and faery; else a printed reason (a failure
@@ -512,4 +512,190 @@ fn a_publisher_that_goes_away_and_floods_back_is_survived() {
         .unwrap_or_else(|| panic!("{line}"));
     assert!(frames_in > 15, "{line}");
     assert!(std::fs::read(d.join("back.csv")).unwrap().len() > 1000);
+}
+
+/// The children of `pid` (its threads' children).
+fn children(pid: u32) -> Vec<u32> {
+    let mut v = Vec::new();
+    for task in std::fs::read_dir(format!("/proc/{pid}/task"))
+        .into_iter()
+        .flatten()
+        .flatten()
+    {
+        let text = std::fs::read_to_string(task.path().join("children")).unwrap_or_default();
+        v.extend(
+            text.split_whitespace()
+                .filter_map(|p| p.parse::<u32>().ok()),
+        );
+    }
+    v
+}
+
+/// An RTPS message of one DATA_FRAG submessage to the discovery reader of a participant
+/// (SPDP, entity 0x000100c7), declaring a sample of `size` bytes and carrying 16 of them.
+fn data_frag(sender: u32, size: u32) -> Vec<u8> {
+    let mut m = b"RTPS".to_vec();
+    m.extend_from_slice(&[2, 3, 1, 15]);
+    m.extend_from_slice(&sender.to_be_bytes());
+    m.extend_from_slice(&[1; 8]);
+    let mut body = Vec::new();
+    body.extend_from_slice(&0u16.to_le_bytes()); // extra flags
+    body.extend_from_slice(&28u16.to_le_bytes()); // octets to inline QoS
+    body.extend_from_slice(&[0x00, 0x01, 0x00, 0xc7]); // reader: SPDP
+    body.extend_from_slice(&[0x00, 0x01, 0x00, 0xc2]); // writer: SPDP
+    body.extend_from_slice(&0i32.to_le_bytes()); // sequence number, high
+    body.extend_from_slice(&1u32.to_le_bytes()); // low
+    body.extend_from_slice(&1u32.to_le_bytes()); // first fragment
+    body.extend_from_slice(&1u16.to_le_bytes()); // fragments here
+    body.extend_from_slice(&1024u16.to_le_bytes()); // fragment size
+    body.extend_from_slice(&size.to_le_bytes()); // the sample's size, as declared
+    body.extend_from_slice(&[0, 1, 0, 0]);
+    body.extend_from_slice(&[b'x'; 12]);
+    m.extend_from_slice(&[0x16, 0x01]);
+    m.extend_from_slice(&(body.len() as u16).to_le_bytes());
+    m.extend_from_slice(&body);
+    m
+}
+
+/// A peer on the domain declares a 4 GiB sample in one datagram (a DATA_FRAG, which the DDS
+/// transport sizes its reassembly buffer from): the transport's process ends at its memory
+/// cap, the daemon says why, starts a new one and goes on publishing (`listen --ros2`
+/// receives its packets afterwards); the daemon's own memory never follows the claim. Needs
+/// nothing but the v2ce binary.
+#[test]
+fn a_peer_declaring_a_huge_sample_ends_the_transport_not_the_daemon() {
+    use std::io::BufRead;
+    let dom = domain(4);
+    let mut run = v2ce()
+        .args([
+            "run",
+            "--source",
+            "fixture",
+            "--loop",
+            "--udp",
+            "",
+            "--ros2",
+            "/v2ce_test/attack",
+            "--duration",
+            "60",
+            "--json",
+        ])
+        .env("ROS_DOMAIN_ID", &dom)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let pid = run.id();
+    let log = std::sync::Arc::new(std::sync::Mutex::new(String::new()));
+    let stderr = run.stderr.take().unwrap();
+    let keep = log.clone();
+    let reader = std::thread::spawn(move || {
+        for line in std::io::BufReader::new(stderr)
+            .lines()
+            .map_while(Result::ok)
+        {
+            let mut l = keep.lock().unwrap();
+            l.push_str(&line);
+            l.push('\n');
+        }
+    });
+    let wait = |what: &str, ok: &dyn Fn() -> bool| {
+        let started = std::time::Instant::now();
+        while !ok() {
+            assert!(
+                started.elapsed() < std::time::Duration::from_secs(30),
+                "waited 30 s for {what}: {}",
+                log.lock().unwrap()
+            );
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
+    };
+    wait("the DDS transport", &|| children(pid).len() == 1);
+    let first = children(pid)[0];
+    std::thread::sleep(std::time::Duration::from_millis(500));
+
+    // Every discovery port of the domain: its multicast group and the participants' unicast
+    // ports (RTPS 9.6.1.1: 7400 + 250 d, + 10 + 2 i).
+    let base = 7400 + 250 * dom.parse::<u16>().unwrap();
+    let socket = std::net::UdpSocket::bind("0.0.0.0:0").unwrap();
+    socket.set_multicast_loop_v4(true).unwrap();
+    let claim = data_frag(0xdead_0001, u32::MAX - (1 << 20));
+    let _ = socket.send_to(&claim, ("239.255.0.1", base));
+    for i in 0..4 {
+        let _ = socket.send_to(&claim, ("127.0.0.1", base + 10 + 2 * i));
+    }
+    wait("a new DDS transport", &|| {
+        log.lock()
+            .unwrap()
+            .contains("a new DDS transport (restart 1)")
+    });
+    let second = children(pid);
+    assert_eq!(second.len(), 1, "{second:?}");
+    assert_ne!(second[0], first);
+    {
+        let l = log.lock().unwrap();
+        assert!(
+            l.contains("the DDS transport ended") && l.contains("memory allocation of"),
+            "{l}"
+        );
+    }
+
+    // The new transport publishes: a subscriber that joins now receives whole packets.
+    let listen = v2ce()
+        .args([
+            "listen",
+            "--ros2",
+            "/v2ce_test/attack",
+            "--duration",
+            "3",
+            "--json",
+        ])
+        .env("ROS_DOMAIN_ID", &dom)
+        .output()
+        .unwrap();
+    assert!(
+        listen.status.success(),
+        "{}",
+        String::from_utf8_lossy(&listen.stderr)
+    );
+    let text = String::from_utf8_lossy(&listen.stdout);
+    let report: serde_json::Value = serde_json::from_str(text.lines().last().unwrap()).unwrap();
+    assert!(report["events"].as_u64().unwrap() > 10_000, "{report}");
+    assert_eq!(report["malformed"], 0, "{report}");
+
+    // The daemon's memory never followed the claim; one SIGTERM ends it with its report.
+    let peak = std::fs::read_to_string(format!("/proc/{pid}/status"))
+        .unwrap()
+        .lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))
+        .and_then(|v| v.split_whitespace().next()?.parse::<u64>().ok())
+        .unwrap();
+    assert!(peak < 512 * 1024, "the daemon's peak {peak} KiB");
+    // SAFETY: kill sends SIGTERM to the child's pid.
+    assert_eq!(unsafe { libc::kill(pid as i32, libc::SIGTERM) }, 0);
+    let out = run.wait_with_output().unwrap();
+    reader.join().unwrap();
+    assert!(out.status.success(), "{}", log.lock().unwrap());
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let sink = &report["stats"]["sinks"][0]["stats"];
+    assert!(sink["messages_sent"].as_u64().unwrap() > 1000, "{sink}");
+    for line in log.lock().unwrap().lines() {
+        if line.contains("DDS transport") {
+            eprintln!("{line}");
+        }
+    }
+    eprintln!(
+        "daemon peak {} MiB; listen after the restart: {} events; sink {sink}",
+        peak >> 10,
+        report_events(&text)
+    );
+}
+
+fn report_events(listen_stdout: &str) -> u64 {
+    listen_stdout
+        .lines()
+        .last()
+        .and_then(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .and_then(|v| v["events"].as_u64())
+        .unwrap_or(0)
 }

@@ -130,8 +130,9 @@ pub fn listen(args: ListenArgs) -> Result<()> {
         );
         if args.ros2.is_some() {
             println!(
-                "ros2: {} packets malformed (refused), {} missing from the seq numbering",
-                report.malformed, report.seq_gaps
+                "ros2: {} packets malformed (refused), {} missing from the seq numbering, the \
+                 DDS transport replaced {} times",
+                report.malformed, report.seq_gaps, report.transport_restarts
             );
         }
     }

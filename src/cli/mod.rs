@@ -87,6 +87,33 @@ pub enum Command {
     /// job arrays, Kubernetes Indexed Jobs), resumable, with a ledger per shard; or merge the
     /// ledgers into one report (--report DIR)
     Batch(BatchArgs),
+    /// The DDS transport of a ROS 2 output or source, run by v2ce itself in a process of its
+    /// own under a memory cap (`ros2::host`); not for people.
+    #[command(name = "dds-host", hide = true)]
+    DdsHost(DdsHostArgs),
+}
+
+/// The endpoint a `dds-host` child opens.
+#[derive(Args)]
+pub struct DdsHostArgs {
+    /// The DDS domain.
+    #[arg(long)]
+    domain: u16,
+    /// The ROS 2 topic.
+    #[arg(long)]
+    topic: String,
+    /// The ROS 2 message type.
+    #[arg(long = "type")]
+    ros_type: String,
+    /// The history depth.
+    #[arg(long)]
+    depth: u32,
+    /// Best effort (else reliable).
+    #[arg(long)]
+    best_effort: bool,
+    /// A publication (else a subscription).
+    #[arg(long)]
+    publish: bool,
 }
 
 impl Command {
@@ -119,6 +146,16 @@ impl Command {
             Command::Dataset(DatasetCommand::Synthetic(args)) => dataset::dataset_synthetic(args),
             Command::Dataset(DatasetCommand::Recording(args)) => dataset::dataset_recording(args),
             Command::Batch(args) => batch::batch(args),
+            Command::DdsHost(a) => crate::ros2::host::serve(&crate::ros2::host::Endpoint {
+                domain: crate::ros2::dds::check_domain("--domain", a.domain.into())?,
+                topic: a.topic,
+                ros_type: a.ros_type,
+                qos: crate::ros2::dds::Qos {
+                    reliable: !a.best_effort,
+                    depth: a.depth,
+                },
+                publish: a.publish,
+            }),
         }
     }
 }

@@ -8,9 +8,8 @@
 //! stream goes on; [`ADOPT_AFTER`] stamps off the timeline in a row are a new timeline (a
 //! publisher restarted, a bag played in a loop), followed from one frame period after the last
 //! frame. A flooding publisher costs at most the reader's history ([`DEPTH`] images; older ones
-//! are replaced, as a camera driver's buffers are). The transport reassembles a fragmented
-//! message into a buffer of the size its sender declares (the `rustdds` crate, before v2ce sees
-//! it): a bound there would have to come from the crate. No image for [`IDLE`] is an error, on
+//! are replaced, as a camera driver's buffers are). The transport runs in a process of its own
+//! under a memory cap ([`crate::ros2::host`]), replaced when a peer's claim ends it. No image for [`IDLE`] is an error, on
 //! which the daemon reopens the source with its usual backoff (a publisher that went away and
 //! came back).
 
@@ -18,7 +17,8 @@ use std::time::Duration;
 
 use super::{ros_image, Frame, FrameSource, SourceEncoding};
 use crate::error::{Error, Result};
-use crate::ros2::dds::{Participant, Qos, Subscription};
+use crate::ros2::dds::Qos;
+use crate::ros2::host::Subscription;
 use crate::ros2::msg::{self, Image};
 
 /// The images the reader keeps for a consumer that is behind.
@@ -43,7 +43,6 @@ pub const PREFIX: &str = "ros2:";
 pub struct TopicSource {
     topic: String,
     subscription: Subscription,
-    _participant: Participant,
     size: (u16, u16),
     encoding: SourceEncoding,
     first: Option<Frame>,
@@ -62,8 +61,8 @@ pub struct TopicSource {
 impl TopicSource {
     /// Subscribes to `topic` on `domain` and waits (up to [`FIRST_WAIT`]) for its first image.
     pub fn open(topic: &str, domain: u16) -> Result<Self> {
-        let participant = Participant::new(domain)?;
-        let subscription = participant.subscribe(
+        let subscription = Subscription::open(
+            domain,
             topic,
             msg::IMAGE,
             Qos {
@@ -74,7 +73,6 @@ impl TopicSource {
         let mut s = TopicSource {
             topic: topic.to_string(),
             subscription,
-            _participant: participant,
             size: (0, 0),
             encoding: SourceEncoding::Srgb,
             first: None,

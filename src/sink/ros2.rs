@@ -23,8 +23,12 @@ use super::{ClosedBy, Sink, SinkContext, SinkStats};
 use crate::error::{Error, Result};
 use crate::event::Event;
 use crate::format::event_packet::{Packet, Packetizer};
-use crate::ros2::dds::{self, Participant, Publication, Qos};
+use crate::ros2::dds::{self, Qos};
+use crate::ros2::host::Publication;
 use crate::ros2::msg;
+
+/// How long a reason for lost packets goes unsaid after it was said.
+const WARN_AGAIN: Duration = Duration::from_secs(10);
 
 /// How long the first packet waits after `wait_subscribers` were matched.
 const SETTLE: Duration = Duration::from_secs(2);
@@ -132,8 +136,7 @@ impl Ros2SinkConfig {
             Some(d) => dds::check_domain("ROS 2 sink domain_id", d)?,
             None => dds::default_domain()?,
         };
-        let participant = Participant::new(domain)?;
-        let publication = participant.publish(&self.topic, msg::EVENT_PACKET, self.qos())?;
+        let publication = Publication::open(domain, &self.topic, msg::EVENT_PACKET, self.qos())?;
         let delay = Duration::from_secs_f64(self.emit_delay_ms / 1000.0);
         Ok(Box::new(Ros2Sink {
             packets: Packetizer::new(
@@ -146,11 +149,11 @@ impl Ros2SinkConfig {
             config: self.clone(),
             domain,
             publication,
-            _participant: participant,
             ready: Vec::new(),
             stats: SinkStats::default(),
             stop: Arc::new(AtomicBool::new(false)),
             waited: self.wait_subscribers == 0,
+            warned: None,
         }))
     }
 }
@@ -162,12 +165,12 @@ pub struct Ros2Sink {
     packets: Packetizer,
     clock: Option<EmitClock>,
     publication: Publication,
-    // Dropped last: the writer belongs to it.
-    _participant: Participant,
     ready: Vec<Packet>,
     stats: SinkStats,
     stop: Arc<AtomicBool>,
     waited: bool,
+    /// The last reason a packet was lost, and when it was said.
+    warned: Option<(String, Instant)>,
 }
 
 impl Ros2Sink {
@@ -229,7 +232,7 @@ impl Ros2Sink {
             }
             let bytes = p.msg.to_cdr();
             let n = bytes.len() as u64;
-            match self.publication.send(bytes) {
+            match self.publication.send(&bytes) {
                 Ok(()) => {
                     self.stats.events_sent += p.events as u64;
                     self.stats.messages_sent += 1;
@@ -247,8 +250,22 @@ impl Ros2Sink {
         }
         if let Some(e) = first_error {
             // A writer that could not take a packet (its subscribers' history full for longer
-            // than its blocking time) loses it, counted; the run goes on.
-            tracing::warn!("ros2 {}: {e}", self.config.topic);
+            // than its blocking time, its transport being replaced) loses it, counted; the run
+            // goes on. The same reason is said again after WARN_AGAIN at most.
+            let e = e.to_string();
+            let now = Instant::now();
+            let again = self
+                .warned
+                .as_ref()
+                .is_none_or(|(said, at)| *said != e || now.duration_since(*at) >= WARN_AGAIN);
+            if again {
+                tracing::warn!(
+                    "ros2 {}: {e} ({} packets lost so far)",
+                    self.config.topic,
+                    self.stats.messages_dropped
+                );
+                self.warned = Some((e, now));
+            }
         }
         Ok(())
     }
@@ -306,7 +323,7 @@ impl Sink for Ros2Sink {
 
     fn stats(&self) -> SinkStats {
         SinkStats {
-            clients: self.publication.subscribers() as u64,
+            clients: self.publication.matched() as u64,
             ..self.stats
         }
     }
