@@ -7,6 +7,9 @@
 //! publishes to and subscribes from it on loopback with default discovery, builds without a C
 //! library, and leaves the message bytes to us, so the CDR is written and read once, bounded
 //! ([`super::cdr`]), for DDS and rosbag2 alike.
+//!
+//! This layer runs in the DDS transport's own process ([`super::host`]), never in the daemon:
+//! the crate sizes a fragmented sample's buffer from what a peer declares.
 
 use std::time::{Duration, Instant};
 

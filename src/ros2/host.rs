@@ -31,7 +31,7 @@ use crate::limits;
 const SAMPLE: u8 = 1;
 /// To the child: wait for acknowledgements (payload: milliseconds, u64 LE).
 const WAIT_ACK: u8 = 2;
-/// From the child: the endpoint is open.
+/// From the child: the endpoint is open (one byte: 1 when its memory cap holds).
 const READY: u8 = 3;
 /// From the child: subscribers matched (u32 LE).
 const MATCHED: u8 = 4;
@@ -184,7 +184,17 @@ impl Running {
             started: Instant::now(),
         };
         match running.from.recv_timeout(OPEN_WAIT) {
-            Ok((READY, _)) => Ok(running),
+            Ok((READY, capped)) => {
+                if capped.first() != Some(&1) {
+                    tracing::warn!(
+                        "ros2 {}: the DDS transport runs without its memory cap (the limit \
+                         was refused, as the systemd unit's system call filter does): the \
+                         kernel's OOM killer takes it first, the service's MemoryMax bounds it",
+                        endpoint.topic
+                    );
+                }
+                Ok(running)
+            }
             Ok((FAILED, why)) => Err(Error::invalid(
                 "ROS 2",
                 String::from_utf8_lossy(&why).into_owned(),
@@ -253,9 +263,9 @@ fn cap_the_child(command: &mut Command) {
                 rlim_cur: cap,
                 rlim_max: cap,
             };
-            if libc::setrlimit(libc::RLIMIT_DATA, &limit) != 0 {
-                return Err(std::io::Error::last_os_error());
-            }
+            // Refused under a seccomp filter (the systemd unit's refuses @resources): the
+            // child says so when it is ready, and the kernel's OOM killer takes it first.
+            libc::setrlimit(libc::RLIMIT_DATA, &limit);
             libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL);
             Ok(())
         });
@@ -554,6 +564,13 @@ impl Subscription {
 pub fn serve(endpoint: &Endpoint) -> Result<()> {
     // Under memory pressure the kernel takes this process before the daemon.
     let _ = std::fs::write("/proc/self/oom_score_adj", "1000");
+    let mut limit = libc::rlimit {
+        rlim_cur: 0,
+        rlim_max: 0,
+    };
+    // SAFETY: getrlimit fills the struct it is given.
+    let capped = unsafe { libc::getrlimit(libc::RLIMIT_DATA, &mut limit) } == 0
+        && limit.rlim_cur <= limits::DDS_HOST_MEMORY as libc::rlim_t;
     let mut out = std::io::stdout().lock();
     let io = |e: std::io::Error| Error::invalid("DDS transport", e.to_string());
     let participant = match Participant::new(endpoint.domain) {
@@ -585,7 +602,7 @@ pub fn serve(endpoint: &Endpoint) -> Result<()> {
                 return Err(e);
             }
         };
-        write_frame(&mut out, READY, &[]).map_err(io)?;
+        write_frame(&mut out, READY, &[capped as u8]).map_err(io)?;
         let mut matched = 0;
         loop {
             match commands.recv_timeout(POLL) {
@@ -618,7 +635,7 @@ pub fn serve(endpoint: &Endpoint) -> Result<()> {
                 return Err(e);
             }
         };
-        write_frame(&mut out, READY, &[]).map_err(io)?;
+        write_frame(&mut out, READY, &[capped as u8]).map_err(io)?;
         loop {
             if let Err(std::sync::mpsc::TryRecvError::Disconnected) = commands.try_recv() {
                 return Ok(());
@@ -641,10 +658,10 @@ mod tests {
     fn frames_round_trip_and_lengths_are_bounded_before_allocation() {
         let mut buf = Vec::new();
         write_frame(&mut buf, SAMPLE, b"abc").unwrap();
-        write_frame(&mut buf, READY, &[]).unwrap();
+        write_frame(&mut buf, READY, &[1]).unwrap();
         let mut r = &buf[..];
         assert_eq!(read_frame(&mut r).unwrap(), Some((SAMPLE, b"abc".to_vec())));
-        assert_eq!(read_frame(&mut r).unwrap(), Some((READY, vec![])));
+        assert_eq!(read_frame(&mut r).unwrap(), Some((READY, vec![1])));
         assert_eq!(read_frame(&mut r).unwrap(), None);
         // A length past the limit: an error, nothing allocated.
         let mut huge = vec![SAMPLE];
