@@ -7,6 +7,7 @@
 
 mod common;
 
+use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
@@ -583,9 +584,19 @@ fn a_peer_declaring_a_huge_sample_ends_the_transport_not_the_daemon() {
         .env("ROS_DOMAIN_ID", &dom)
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
+        .process_group(0)
         .spawn()
         .unwrap();
     let pid = run.id();
+    // A failed assertion leaves no daemon on the domain (its transport included).
+    struct KillGroup(i32);
+    impl Drop for KillGroup {
+        fn drop(&mut self) {
+            // SAFETY: kill sends SIGKILL to a group this test started (gone when it ended).
+            unsafe { libc::kill(-self.0, libc::SIGKILL) };
+        }
+    }
+    let _group = KillGroup(pid as i32);
     let log = std::sync::Arc::new(std::sync::Mutex::new(String::new()));
     let stderr = run.stderr.take().unwrap();
     let keep = log.clone();
@@ -663,7 +674,9 @@ fn a_peer_declaring_a_huge_sample_ends_the_transport_not_the_daemon() {
     assert!(report["events"].as_u64().unwrap() > 10_000, "{report}");
     assert_eq!(report["malformed"], 0, "{report}");
 
-    // The daemon's memory never followed the claim; one SIGTERM ends it with its report.
+    // The daemon's memory never followed the claim; one SIGTERM to its whole process group
+    // (as systemd stops a unit, as Ctrl-C reaches a terminal's) ends it with its report, its
+    // last packets sent through the transport, which waits for the daemon to close it.
     let peak = std::fs::read_to_string(format!("/proc/{pid}/status"))
         .unwrap()
         .lines()
@@ -671,11 +684,13 @@ fn a_peer_declaring_a_huge_sample_ends_the_transport_not_the_daemon() {
         .and_then(|v| v.split_whitespace().next()?.parse::<u64>().ok())
         .unwrap();
     assert!(peak < 512 * 1024, "the daemon's peak {peak} KiB");
-    // SAFETY: kill sends SIGTERM to the child's pid.
-    assert_eq!(unsafe { libc::kill(pid as i32, libc::SIGTERM) }, 0);
+    // SAFETY: kill sends SIGTERM to the group the child leads.
+    assert_eq!(unsafe { libc::kill(-(pid as i32), libc::SIGTERM) }, 0);
     let out = run.wait_with_output().unwrap();
     reader.join().unwrap();
     assert!(out.status.success(), "{}", log.lock().unwrap());
+    let ended = log.lock().unwrap().matches("a new one in").count();
+    assert_eq!(ended, 1, "{}", log.lock().unwrap());
     let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     let sink = &report["stats"]["sinks"][0]["stats"];
     assert!(sink["messages_sent"].as_u64().unwrap() > 1000, "{sink}");

@@ -14,7 +14,8 @@
 //! Messages cross a pair of pipes as frames: a kind byte, a 32-bit little-endian length, the
 //! bytes; a length over [`limits::MAX_DDS_SAMPLE_BYTES`] ends the exchange before anything is
 //! allocated. The child ends when its standard input closes (the parent dropped the endpoint
-//! or died; `PR_SET_PDEATHSIG` as well).
+//! or died); it ignores the stop signals a terminal or systemd sends
+//! to the whole group, so the daemon's last packets still leave through it.
 
 use std::io::{BufRead, BufReader, Read, Write};
 use std::process::{Child, ChildStdin, Command, Stdio};
@@ -251,11 +252,12 @@ impl Drop for Running {
     }
 }
 
-/// Caps the child's data segment and ties its life to this thread's process.
+/// Caps the child's data segment. (Its life is tied to the parent's by its input, whose
+/// end closes with the parent: a parent-death signal would follow the spawning thread.)
 fn cap_the_child(command: &mut Command) {
     use std::os::unix::process::CommandExt;
     let cap = limits::DDS_HOST_MEMORY as libc::rlim_t;
-    // SAFETY: between fork and exec only async-signal-safe calls (setrlimit, prctl) are made,
+    // SAFETY: between fork and exec only an async-signal-safe call (setrlimit) is made,
     // on values computed before the fork.
     unsafe {
         command.pre_exec(move || {
@@ -266,7 +268,6 @@ fn cap_the_child(command: &mut Command) {
             // Refused under a seccomp filter (the systemd unit's refuses @resources): the
             // child says so when it is ready, and the kernel's OOM killer takes it first.
             libc::setrlimit(libc::RLIMIT_DATA, &limit);
-            libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL);
             Ok(())
         });
     }
@@ -564,6 +565,13 @@ impl Subscription {
 pub fn serve(endpoint: &Endpoint) -> Result<()> {
     // Under memory pressure the kernel takes this process before the daemon.
     let _ = std::fs::write("/proc/self/oom_score_adj", "1000");
+    // A stop signal for the whole group (Ctrl-C in a terminal, systemd's stop of the unit's
+    // cgroup) is the daemon's to act on: it sends its last packets through this process and
+    // then closes its input, which ends it.
+    for signal in [libc::SIGINT, libc::SIGTERM, libc::SIGHUP, libc::SIGQUIT] {
+        // SAFETY: setting a signal's disposition to ignore, no handler involved.
+        unsafe { libc::signal(signal, libc::SIG_IGN) };
+    }
     let mut limit = libc::rlimit {
         rlim_cur: 0,
         rlim_max: 0,
