@@ -9,9 +9,9 @@
 //! publisher restarted, a bag played in a loop), followed from one frame period after the last
 //! frame. A flooding publisher costs at most the reader's history ([`DEPTH`] images; older ones
 //! are replaced, as a camera driver's buffers are). The transport runs in a process of its own
-//! under a memory cap ([`crate::ros2::host`]), replaced when a peer's claim ends it. No image for [`IDLE`] is an error, on
-//! which the daemon reopens the source with its usual backoff (a publisher that went away and
-//! came back).
+//! under a memory cap ([`crate::ros2::host`]), replaced when a peer's claim ends it. No image
+//! for [`IDLE`] is an error, on which the daemon reopens the source with its usual backoff (a
+//! publisher that went away and came back).
 
 use std::time::Duration;
 

@@ -1,6 +1,7 @@
 //! Events published on a ROS 2 topic as `event_camera_msgs/msg/EventPacket` (`evt3`), over
-//! DDS from pure Rust ([`crate::ros2::dds`]), as the Prophesee and iniVation drivers publish
-//! them: a robot's nodes subscribe to v2ce as to a real event camera.
+//! DDS from pure Rust ([`crate::ros2::dds`], in a process of its own under a memory cap:
+//! [`crate::ros2::host`]), as the Prophesee and iniVation drivers publish them: a robot's nodes
+//! subscribe to v2ce as to a real event camera.
 //!
 //! Each packet holds at most `packet_us` of events and is decodable alone
 //! ([`crate::format::event_packet`]); a batch's last packet is closed with the batch, so no
