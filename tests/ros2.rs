@@ -45,28 +45,28 @@ fn peer_python(test: &str) -> Option<PathBuf> {
     Some(py)
 }
 
+/// Runs `command` to its end and asserts it succeeded (its stderr as the message).
+fn succeeds(command: &mut Command) -> std::process::Output {
+    let out = command.output().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
 fn json(path: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
 }
 
 /// Events of a file, read by faery: (t, x, y, on) columns as one list.
 fn faery_events(py: &Path, path: &Path) -> String {
-    let out = Command::new(py)
-        .args([
-            "-c",
-            "import sys, faery, numpy as np, hashlib\n\
+    let script = "import sys, faery, numpy as np, hashlib\n\
              p = list(faery.events_stream_from_file(sys.argv[1]))\n\
              a = np.concatenate(p) if p else np.zeros(0)\n\
-             print(len(a), hashlib.sha256(b''.join(np.ascontiguousarray(a[k]).tobytes() for k in ['t','x','y','on'])).hexdigest() if len(a) else 0)",
-        ])
-        .arg(path)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+             print(len(a), hashlib.sha256(b''.join(np.ascontiguousarray(a[k]).tobytes() for k in ['t','x','y','on'])).hexdigest() if len(a) else 0)";
+    let out = succeeds(Command::new(py).args(["-c", script]).arg(path));
     String::from_utf8_lossy(&out.stdout).trim().to_string()
 }
 
@@ -206,13 +206,12 @@ fn cyclone_subscribes_and_every_event_equals_convert() {
 }
 
 fn frames(py: &Path, d: &Path) {
-    let o = peer_cmd(py)
-        .arg("frames")
-        .arg(d.join("fr.npz"))
-        .arg(d.join("fr"))
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    succeeds(
+        peer_cmd(py)
+            .arg("frames")
+            .arg(d.join("fr.npz"))
+            .arg(d.join("fr")),
+    );
 }
 
 #[test]
@@ -248,17 +247,12 @@ fn cyclone_images_feed_the_source_and_hostile_ones_are_counted() {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    let publish = peer_cmd(&py)
-        .args(["publish", "/v2ce_test/image_raw"])
-        .arg(d.join("fr.npz"))
-        .arg("--hostile")
-        .env("ROS_DOMAIN_ID", &dom)
-        .output()
-        .unwrap();
-    assert!(
-        publish.status.success(),
-        "{}",
-        String::from_utf8_lossy(&publish.stderr)
+    succeeds(
+        peer_cmd(&py)
+            .args(["publish", "/v2ce_test/image_raw"])
+            .arg(d.join("fr.npz"))
+            .arg("--hostile")
+            .env("ROS_DOMAIN_ID", &dom),
     );
     let run = run.wait_with_output().unwrap();
     let log = String::from_utf8_lossy(&run.stderr);
@@ -311,13 +305,12 @@ fn rosbags_reads_our_bags_and_we_read_its_image_bags() {
             assert!(c.output().unwrap().status.success());
         }
     }
-    let o = peer_cmd(&py)
-        .arg("bag-read")
-        .arg(d.join("ev.mcap"))
-        .arg(d.join("bag.raw"))
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    succeeds(
+        peer_cmd(&py)
+            .arg("bag-read")
+            .arg(d.join("ev.mcap"))
+            .arg(d.join("bag.raw")),
+    );
     let s = json(&d.join("bag.raw.json"));
     assert!(s["packets"].as_u64().unwrap() > 100);
     assert_eq!(
@@ -325,37 +318,34 @@ fn rosbags_reads_our_bags_and_we_read_its_image_bags() {
         faery_events(&py, &d.join("ev.raw"))
     );
     // v2ce reads its own bag back (info, transcode) with the same events.
-    let t = v2ce()
-        .arg("transcode")
-        .arg(d.join("ev.mcap"))
-        .arg(d.join("back.raw"))
-        .args(["--evt", "3"])
-        .output()
-        .unwrap();
-    assert!(t.status.success(), "{}", String::from_utf8_lossy(&t.stderr));
+    succeeds(
+        v2ce()
+            .arg("transcode")
+            .arg(d.join("ev.mcap"))
+            .arg(d.join("back.raw"))
+            .args(["--evt", "3"]),
+    );
     assert_eq!(
         faery_events(&py, &d.join("back.raw")),
         faery_events(&py, &d.join("ev.raw"))
     );
     // A bag of Images that rosbags wrote (two cameras): --topic picks one; its events equal
     // the same frames from PNGs with their times.
-    let o = peer_cmd(&py)
-        .arg("bag-write")
-        .arg(d.join("fr.npz"))
-        .arg(d.join("images"))
-        .arg("/cam/image_raw")
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    succeeds(
+        peer_cmd(&py)
+            .arg("bag-write")
+            .arg(d.join("fr.npz"))
+            .arg(d.join("images"))
+            .arg("/cam/image_raw"),
+    );
     let bag = d.join("images/images.mcap");
-    let c = v2ce()
-        .arg("convert")
-        .arg(&bag)
-        .args(["--topic", "/cam/image_raw", "--seed", "2", "-o"])
-        .arg(d.join("bag.csv"))
-        .output()
-        .unwrap();
-    assert!(c.status.success(), "{}", String::from_utf8_lossy(&c.stderr));
+    succeeds(
+        v2ce()
+            .arg("convert")
+            .arg(&bag)
+            .args(["--topic", "/cam/image_raw", "--seed", "2", "-o"])
+            .arg(d.join("bag.csv")),
+    );
     let c = v2ce()
         .arg("convert")
         .arg(d.join("fr"))
@@ -399,15 +389,10 @@ fn listen_checks_what_a_cyclone_publisher_sends() {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    let publish = peer_cmd(&py)
-        .args(["publish-packets", "/v2ce_test/packets"])
-        .env("ROS_DOMAIN_ID", &dom)
-        .output()
-        .unwrap();
-    assert!(
-        publish.status.success(),
-        "{}",
-        String::from_utf8_lossy(&publish.stderr)
+    succeeds(
+        peer_cmd(&py)
+            .args(["publish-packets", "/v2ce_test/packets"])
+            .env("ROS_DOMAIN_ID", &dom),
     );
     let out = listen.wait_with_output().unwrap();
     let text = String::from_utf8_lossy(&out.stdout);
@@ -465,14 +450,13 @@ fn a_publisher_that_goes_away_and_floods_back_is_survived() {
         .spawn()
         .unwrap();
     let publish = |extra: &[&str]| {
-        let o = peer_cmd(&py)
-            .args(["publish", "/v2ce_test/back"])
-            .arg(d.join("fr.npz"))
-            .args(extra)
-            .env("ROS_DOMAIN_ID", &dom)
-            .output()
-            .unwrap();
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        succeeds(
+            peer_cmd(&py)
+                .args(["publish", "/v2ce_test/back"])
+                .arg(d.join("fr.npz"))
+                .args(extra)
+                .env("ROS_DOMAIN_ID", &dom),
+        );
     };
     // 15 frames, then the same again (a bag played in a loop: stamps back at the start): two
     // refused, then followed as a new timeline.
@@ -652,22 +636,17 @@ fn a_peer_declaring_a_huge_sample_ends_the_transport_not_the_daemon() {
     }
 
     // The new transport publishes: a subscriber that joins now receives whole packets.
-    let listen = v2ce()
-        .args([
-            "listen",
-            "--ros2",
-            "/v2ce_test/attack",
-            "--duration",
-            "3",
-            "--json",
-        ])
-        .env("ROS_DOMAIN_ID", &dom)
-        .output()
-        .unwrap();
-    assert!(
-        listen.status.success(),
-        "{}",
-        String::from_utf8_lossy(&listen.stderr)
+    let listen = succeeds(
+        v2ce()
+            .args([
+                "listen",
+                "--ros2",
+                "/v2ce_test/attack",
+                "--duration",
+                "3",
+                "--json",
+            ])
+            .env("ROS_DOMAIN_ID", &dom),
     );
     let text = String::from_utf8_lossy(&listen.stdout);
     let report: serde_json::Value = serde_json::from_str(text.lines().last().unwrap()).unwrap();
